@@ -1,0 +1,172 @@
+"""Experiment configuration: frozen dataclasses, JSON round trip and ``key=value`` overrides.
+
+An experiment's ``Config`` is a frozen dataclass with two nested sections, ``data``
+(:class:`DataConfig`) and ``train`` (:class:`TrainConfig`), plus its own model fields.
+Overrides use dotted paths (``train.lr=1e-3``) or, when unambiguous, a bare field name
+(``lr=1e-3``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from typing import Any
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """Which motion data to train on and how to cut it (see ``motionflows.data``)."""
+
+    source: str = "synthetic"  # "synthetic", "bandai" or "bvh"
+    path: str | None = None  # folder for "bandai" / "bvh"; None = the source's default
+    skeleton: str = "bandai"  # skeleton mapping for "bvh"
+    fps: float = 20.0
+    window: int = 80  # frames per training window (4 s at 20 fps)
+    hop: int = 10  # frames between window starts
+    split_by: str = "take"  # "take" or "performer"
+    mirror: bool = True  # augmentation of the training split
+    reverse: bool = False  # time-reversal augmentation (changes the motion's physics)
+    synthetic_clips: int = 120
+    synthetic_seconds: float = 12.0
+    seed: int = 0
+
+    def load(self):
+        """Build the dataset this config describes (cached on disk by the data layer)."""
+        from motionflows.data import load_dataset
+
+        return load_dataset(
+            self.source,
+            path=self.path,
+            skeleton=self.skeleton,
+            fps=self.fps,
+            window=self.window,
+            hop=self.hop,
+            split_by=self.split_by,
+            mirror=self.mirror,
+            reverse=self.reverse,
+            n_clips=self.synthetic_clips,
+            seconds=self.synthetic_seconds,
+            seed=self.seed,
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """The shared optimisation and bookkeeping settings of ``motionflows.training``."""
+
+    steps: int = 1000
+    batch_size: int = 32
+    lr: float = 1e-3
+    warmup_steps: int = 0
+    schedule: str = "constant"  # "constant" or "cosine" (after warm-up)
+    clip_value: float | None = None  # element-wise gradient clipping, applied first
+    clip_norm: float | None = None  # then global-norm clipping
+    weight_decay: float = 0.0
+    eval_every: int = 200
+    eval_batches: int = 8
+    log_every: int = 10
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    max_nonfinite: int = 10  # consecutive non-finite steps before the run stops
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class Scope:
+    """What one ``evaluate()`` entry scores: a description, and whether it is a bound."""
+
+    description: str
+    bound: bool = False
+
+
+def to_dict(config: Any) -> dict:
+    """A JSON-able dict of a (nested) config dataclass; tuples become lists."""
+    return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def from_dict(cls: type, values: dict) -> Any:
+    """Rebuild ``cls`` from :func:`to_dict` output. Unknown keys raise ``ValueError``."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(values) - names
+    if unknown:
+        raise ValueError(
+            f"{cls.__name__} has no field(s) {sorted(unknown)}; valid fields: {sorted(names)}"
+        )
+    kwargs = {}
+    for name, value in values.items():
+        kind = hints[name]
+        if dataclasses.is_dataclass(kind) and isinstance(value, dict):
+            value = from_dict(kind, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _field_paths(cls: type, prefix: str = "") -> dict[str, tuple[str, type]]:
+    """Map dotted path -> (path, type) for every leaf field of a config class."""
+    hints = typing.get_type_hints(cls)
+    paths: dict[str, tuple[str, type]] = {}
+    for f in dataclasses.fields(cls):
+        kind = hints[f.name]
+        path = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(kind):
+            paths.update(_field_paths(kind, path + "."))
+        else:
+            paths[path] = (path, kind)
+    return paths
+
+
+def _parse(text: str, kind: Any, key: str) -> Any:
+    """Parse an override value with the field's type; JSON for anything non-trivial."""
+    args = typing.get_args(kind)
+    optional = type(None) in args
+    if optional and text.lower() in ("none", "null"):
+        return None
+    base = next((a for a in args if a is not type(None)), kind) if args else kind
+    try:
+        if base is bool:
+            if text.lower() in ("1", "true", "yes", "on"):
+                return True
+            if text.lower() in ("0", "false", "no", "off"):
+                return False
+            raise ValueError(text)
+        if base is int:
+            return int(text)
+        if base is float:
+            return float(text)
+        if base is str:
+            return text
+        value = json.loads(text)
+        return tuple(value) if isinstance(value, list) else value
+    except ValueError as err:
+        raise ValueError(f"--set {key}={text}: cannot read {text!r} as {kind}") from err
+
+
+def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
+    """Return ``config`` with ``key=value`` overrides applied (dotted or unique bare names)."""
+    paths = _field_paths(type(config))
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if key in paths:
+            path, kind = paths[key]
+        else:
+            matches = [p for p in paths if p.rsplit(".", 1)[-1] == key]
+            if len(matches) != 1:
+                hint = f"ambiguous: {matches}" if matches else f"valid keys: {sorted(paths)}"
+                raise ValueError(f"--set {key}: unknown config key ({hint})")
+            path, kind = paths[matches[0]]
+        config = _replace_path(config, path.split("."), _parse(text.strip(), kind, key))
+    return config
+
+
+def _replace_path(config: Any, parts: list[str], value: Any) -> Any:
+    if len(parts) == 1:
+        return dataclasses.replace(config, **{parts[0]: value})
+    inner = getattr(config, parts[0])
+    return dataclasses.replace(config, **{parts[0]: _replace_path(inner, parts[1:], value)})
