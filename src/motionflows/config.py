@@ -70,6 +70,12 @@ class TrainConfig:
     keep_checkpoints: int = 3
     max_nonfinite: int = 10  # consecutive non-finite steps before the run stops
     seed: int = 0
+    optimizer: str = "adam"  # "adam" or "adamw" (weight_decay applies to "adamw")
+    b1: float = 0.9
+    b2: float = 0.999
+    eps: float = 1e-8
+    min_lr_ratio: float = 0.0  # cosine schedule: final lr = lr * min_lr_ratio
+    val_batch_size: int | None = None  # None = batch_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +84,25 @@ class Scope:
 
     description: str
     bound: bool = False
+    skip: int | str = 0
+    """Frames at the start of the window the score leaves out (they are conditioned on, not
+    scored): an int, or the name of a config field holding it (e.g. ``"tau"`` for MoGlow's
+    official scope of frames tau..T-1). The scored frames per window are ``T - skip``."""
+
+    def scored_frames(self, window: int, config: Any = None) -> int:
+        """Number of frames this score covers in a window of ``window`` frames."""
+        skip = self.skip
+        if isinstance(skip, str):
+            if config is None or not hasattr(config, skip):
+                raise ValueError(
+                    f"Scope {self.description!r} skips the config field {skip!r}, "
+                    "but no config with that field was given"
+                )
+            skip = int(getattr(config, skip))
+        frames = int(window) - int(skip)
+        if frames <= 0:
+            raise ValueError(f"Scope {self.description!r} scores {frames} frames of {window}")
+        return frames
 
 
 def to_dict(config: Any) -> dict:
@@ -170,3 +195,19 @@ def _replace_path(config: Any, parts: list[str], value: Any) -> Any:
         return dataclasses.replace(config, **{parts[0]: value})
     inner = getattr(config, parts[0])
     return dataclasses.replace(config, **{parts[0]: _replace_path(inner, parts[1:], value)})
+
+
+def save_config(path: Any, *, experiment: str, preset: str | None, config: Any) -> None:
+    """Write ``config.json``: ``{"experiment", "preset", "config"}`` (see :func:`load_config`)."""
+    from pathlib import Path
+
+    payload = {"experiment": experiment, "preset": preset, "config": to_dict(config)}
+    Path(path).write_text(json.dumps(payload, indent=2) + "\n")
+
+
+def load_config(path: Any, cls: type) -> tuple[str, str | None, Any]:
+    """Read a ``config.json`` written by :func:`save_config` -> (experiment, preset, config)."""
+    from pathlib import Path
+
+    payload = json.loads(Path(path).read_text())
+    return payload["experiment"], payload.get("preset"), from_dict(cls, payload["config"])

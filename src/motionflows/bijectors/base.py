@@ -1,0 +1,365 @@
+"""The bijector interface and its combinators: ``Bijector``, ``Chain``, ``Inverse``, ``Scan``.
+
+Direction (as in distrax, TFP, flowjax and the paper's x = f(z)):
+
+* ``forward``  maps latent -> data (sampling):
+  ``forward_and_log_det(z, *, context=None) -> (x, log|det dx/dz|)``
+* ``inverse``  maps data -> latent (normalising, likelihood):
+  ``inverse_and_log_det(x, *, context=None) -> (z, log|det dz/dx|)``
+
+Events are sequences of shape (..., T, D) with any leading batch shape; every ``log_det`` has
+the batch shape (...). ``context`` is an array (..., T, C) aligned in time with the event, or
+None; every layer of a ``Chain`` / ``Scan`` receives the same context.
+
+Data-dependent initialisation runs in an explicit "init mode" (see
+:func:`motionflows.bijectors.initialize_from_data`): while it is active, bijectors are run
+eagerly and layers with data-dependent parameters (``ActNorm``) set them from their input.
+:func:`is_initializing` tells a model whether it is being run in that mode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+Array = jax.Array
+
+__all__ = [
+    "Bijector",
+    "Chain",
+    "Fixed",
+    "Inverse",
+    "Scan",
+    "check_event",
+    "data_init_mode",
+    "is_initializing",
+]
+
+
+class Fixed(nnx.Variable):
+    """A non-trainable array held by a bijector (a permutation matrix, a sign vector).
+
+    It is an ``nnx.Variable`` but not an ``nnx.Param``, so optimisers and gradients taken
+    over ``nnx.Param`` (``nnx.Optimizer(model, tx, wrt=nnx.Param)``,
+    ``nnx.split(model, nnx.Param, ...)``) leave it alone; it is still part of the module's
+    state, so checkpoints and ``nnx.vmap`` stacking carry it. Layers read it through
+    ``jax.lax.stop_gradient`` so that even a gradient over the whole pytree is zero for it.
+    """
+
+
+# ----------------------------------------------------------------------------- init mode
+
+_INIT_MODE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "motionflows_data_init_mode", default=False
+)
+
+
+def is_initializing() -> bool:
+    """True while :func:`initialize_from_data` runs the model (eagerly) in init mode.
+
+    Model code that loops with ``jax.lax.scan``/``jax.jit`` over layers containing
+    ``ActNorm`` can check this and fall back to an eager Python loop during initialisation
+    (``Scan`` does exactly that).
+    """
+    return _INIT_MODE.get()
+
+
+@contextlib.contextmanager
+def data_init_mode() -> Iterator[None]:
+    """Context manager that switches init mode on (used by ``initialize_from_data``).
+
+    Inside it, ``ActNorm.inverse_and_log_det`` overwrites its parameters from its input
+    (mutating the module it is called on). Prefer :func:`initialize_from_data`, which works
+    on a copy and so is pure.
+    """
+    token = _INIT_MODE.set(True)
+    try:
+        yield
+    finally:
+        _INIT_MODE.reset(token)
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def check_event(x: Any, num_channels: int | None, name: str, *, what: str = "inputs") -> None:
+    """Raise a clear ``ValueError`` unless ``x`` is an array of shape (..., T, num_channels).
+
+    Pure Python on static shapes: costs nothing under ``jax.jit``.
+    """
+    shape = getattr(x, "shape", None)
+    if shape is None:
+        raise ValueError(f"{name} expects an array of shape (..., T, D), got {type(x).__name__}")
+    if len(shape) < 2:
+        d = "D" if num_channels is None else num_channels
+        raise ValueError(
+            f"{name} expects (..., T, {d}) {what} (a time axis and a channel axis), "
+            f"got shape {tuple(shape)}; add a time axis, e.g. x[..., None, :] for one frame"
+        )
+    if num_channels is not None and shape[-1] != num_channels:
+        raise ValueError(
+            f"{name} expects (..., T, {num_channels}) {what}, got shape {tuple(shape)} "
+            f"({shape[-1]} channels instead of {num_channels})"
+        )
+
+
+def _check_context(context: Any, x: Array, name: str) -> None:
+    """A context, when given, is (..., T, C) with the event's T and a broadcastable batch."""
+    if context is None:
+        return
+    shape = getattr(context, "shape", None)
+    if shape is None or len(shape) < 2:
+        raise ValueError(
+            f"{name} expects context of shape (..., T, C) aligned in time with the event "
+            f"(..., T, D) = {tuple(x.shape)}, got {shape if shape is not None else type(context)}"
+        )
+    if shape[-2] != x.shape[-2]:
+        raise ValueError(
+            f"{name}: context has {shape[-2]} time steps but the event has {x.shape[-2]}; "
+            f"context must be (..., T, C) aligned with the event (..., T, D)"
+        )
+    try:
+        batch = jnp.broadcast_shapes(tuple(shape[:-2]), tuple(x.shape[:-2]))
+    except ValueError:
+        batch = None
+    if batch != tuple(x.shape[:-2]):
+        raise ValueError(
+            f"{name}: context batch shape {tuple(shape[:-2])} does not broadcast to the event "
+            f"batch shape {tuple(x.shape[:-2])}"
+        )
+
+
+# ----------------------------------------------------------------------------- base class
+
+
+class Bijector(nnx.Module):
+    """An invertible map of sequences (..., T, D) -> (..., T', D') with exact log-dets.
+
+    Subclasses implement ``forward_and_log_det`` (latent -> data) and
+    ``inverse_and_log_det`` (data -> latent); ``forward`` and ``inverse`` are derived.
+    Every bijector is a Flax NNX module, hence a pytree: pass it straight to ``jax.jit``,
+    ``jax.grad``, ``jax.vmap`` or ``jax.lax.scan``.
+    """
+
+    def forward_and_log_det(self, x: Array, *, context: Array | None = None) -> tuple[Array, Array]:
+        """Latent -> data: returns (y, log|det dy/dx|) with log_det of the batch shape."""
+        raise NotImplementedError
+
+    def inverse_and_log_det(self, y: Array, *, context: Array | None = None) -> tuple[Array, Array]:
+        """Data -> latent: returns (x, log|det dx/dy|) with log_det of the batch shape."""
+        raise NotImplementedError
+
+    def forward(self, x: Array, *, context: Array | None = None) -> Array:
+        """Latent -> data."""
+        return self.forward_and_log_det(x, context=context)[0]
+
+    def inverse(self, y: Array, *, context: Array | None = None) -> Array:
+        """Data -> latent."""
+        return self.inverse_and_log_det(y, context=context)[0]
+
+
+def _zeros_batch(x: Array) -> Array:
+    return jnp.zeros(x.shape[:-2], dtype=jnp.result_type(x.dtype, jnp.float32))
+
+
+class Chain(Bijector):
+    """Composition of bijectors. ``Chain([b1, b2, ..., bn])``:
+
+    * ``forward`` (latent -> data) applies b1 first, then b2, ..., then bn:
+      x = bn(...b2(b1(z))),
+    * ``inverse`` (data -> latent) applies bn^-1 first, ..., b1^-1 last,
+
+    and the log-dets add up. So a Glow step that, data -> latent, runs ActNorm, then the
+    1x1 linear map, then the coupling is ``Chain([coupling, linear, actnorm])``;
+    :meth:`from_data_to_latent` builds it from the data -> latent order instead.
+    """
+
+    def __init__(self, bijectors: Sequence[Bijector]):
+        bijectors = list(bijectors)
+        if not bijectors:
+            raise ValueError("Chain needs at least one bijector")
+        for b in bijectors:
+            if not hasattr(b, "forward_and_log_det") or not hasattr(b, "inverse_and_log_det"):
+                raise ValueError(
+                    f"Chain items must be bijectors (with forward_and_log_det and "
+                    f"inverse_and_log_det), got {type(b).__name__}"
+                )
+        self.bijectors = nnx.List(bijectors)
+
+    @classmethod
+    def from_data_to_latent(cls, bijectors: Sequence[Bijector]) -> Chain:
+        """The chain whose inverse (data -> latent) applies ``bijectors`` in list order."""
+        return cls(list(bijectors)[::-1])
+
+    def __len__(self) -> int:
+        return len(self.bijectors)
+
+    def __getitem__(self, i: int) -> Bijector:
+        return self.bijectors[i]
+
+    def forward_and_log_det(self, x, *, context=None):
+        total = None
+        for b in self.bijectors:
+            x, ld = b.forward_and_log_det(x, context=context)
+            total = ld if total is None else total + ld
+        return x, total
+
+    def inverse_and_log_det(self, y, *, context=None):
+        total = None
+        for b in reversed(self.bijectors):
+            y, ld = b.inverse_and_log_det(y, context=context)
+            total = ld if total is None else total + ld
+        return y, total
+
+
+class Inverse(Bijector):
+    """The inverse of a bijector: ``Inverse(b).forward == b.inverse`` and vice versa."""
+
+    def __init__(self, bijector: Bijector):
+        self.bijector = bijector
+
+    def forward_and_log_det(self, x, *, context=None):
+        return self.bijector.inverse_and_log_det(x, context=context)
+
+    def inverse_and_log_det(self, y, *, context=None):
+        return self.bijector.forward_and_log_det(y, context=context)
+
+
+def _as_key(rngs: Any) -> Array:
+    if isinstance(rngs, nnx.Rngs):
+        return rngs.params()
+    if rngs is None:
+        raise ValueError("Scan(factory, num_steps, rngs=...) needs rngs (nnx.Rngs or a jax key)")
+    return rngs
+
+
+class Scan(Bijector):
+    """K identical steps with stacked parameters, run by ``jax.lax.scan``.
+
+    Numerically equal to ``Chain([step_0, ..., step_{K-1}])`` (see :meth:`unrolled`):
+    ``forward`` (latent -> data) runs step 0 first and step K-1 last; ``inverse``
+    (data -> latent) runs them in the reverse order. Compile time does not grow with K.
+    Every step receives the same ``context``.
+
+    Ways to build it:
+
+    * ``Scan(factory, num_steps, rngs=rngs)``: ``factory(rngs: nnx.Rngs) -> Bijector``
+      builds one step; it is called under ``nnx.vmap`` with one split key per step, so the
+      steps share their structure (static attributes) and differ only in parameter values.
+      The factory must not keep ``rngs`` inside the step (no dropout).
+    * ``Scan(stacked, num_steps)``: an existing module whose every array has a leading axis
+      of size ``num_steps`` (e.g. built with ``nnx.vmap``).
+    * ``Scan([step_0, ..., step_{K-1}])``: stacks equally structured step modules.
+
+    Attribute ``steps`` holds the stacked step module.
+
+    During :func:`initialize_from_data` (init mode) the steps are run eagerly one by one
+    (data -> latent order) and their updated parameters are written back into the stack.
+    """
+
+    def __init__(
+        self,
+        steps: Callable[[nnx.Rngs], Bijector] | nnx.Module | Sequence[nnx.Module],
+        num_steps: int | None = None,
+        *,
+        rngs: nnx.Rngs | Array | None = None,
+    ):
+        if isinstance(steps, (list, tuple)):
+            if not steps:
+                raise ValueError("Scan needs at least one step")
+            if num_steps is not None and num_steps != len(steps):
+                raise ValueError(f"Scan got {len(steps)} steps but num_steps={num_steps}")
+            num_steps = len(steps)
+            try:
+                stacked = jax.tree.map(lambda *a: jnp.stack(a), *steps)
+            except ValueError as e:
+                raise ValueError(
+                    "Scan([...]) needs steps with identical structure (same classes, sizes "
+                    f"and static attributes): {e}"
+                ) from e
+        elif isinstance(steps, nnx.Module):
+            stacked = steps
+            leaves = jax.tree.leaves(stacked)
+            if not leaves:
+                raise ValueError("Scan(stacked, num_steps): the module holds no arrays")
+            sizes = {leaf.shape[0] if leaf.ndim else None for leaf in leaves}
+            if len(sizes) != 1 or None in sizes:
+                raise ValueError(
+                    "Scan(stacked, num_steps): every array of the stacked module needs the "
+                    f"same leading (step) axis; found leading sizes {sorted(map(str, sizes))}"
+                )
+            (size,) = sizes
+            if num_steps is None:
+                num_steps = size
+            if size != num_steps:
+                raise ValueError(
+                    f"Scan(stacked, num_steps={num_steps}): the stacked arrays have {size} steps"
+                )
+        elif callable(steps):
+            if num_steps is None or int(num_steps) < 1:
+                raise ValueError(f"Scan(factory, num_steps) needs num_steps >= 1, got {num_steps}")
+            keys = jax.random.split(_as_key(rngs), int(num_steps))
+            factory = steps
+            stacked = nnx.vmap(lambda k: factory(nnx.Rngs(k)), in_axes=0, out_axes=0)(keys)
+        else:
+            raise ValueError(
+                "Scan(steps, num_steps) expects a factory rngs -> Bijector, a stacked module "
+                f"or a list of step modules, got {type(steps).__name__}"
+            )
+        self.steps = stacked
+        self.num_steps = int(num_steps)
+
+    # -- access to single steps
+
+    def step(self, k: int) -> Bijector:
+        """A copy of step ``k`` (0 <= k < num_steps) as an ordinary, unstacked module."""
+        if not -self.num_steps <= k < self.num_steps:
+            raise IndexError(f"Scan has {self.num_steps} steps, asked for step {k}")
+        return jax.tree.map(lambda a: a[k], self.steps)
+
+    def unrolled(self) -> Chain:
+        """The equivalent ``Chain([step_0, ..., step_{K-1}])`` (copies of the parameters)."""
+        return Chain([self.step(k) for k in range(self.num_steps)])
+
+    # -- maps
+
+    def forward_and_log_det(self, x, *, context=None):
+        if is_initializing():
+            return self.unrolled().forward_and_log_det(x, context=context)
+
+        def body(carry, step):
+            h, total = carry
+            h, ld = step.forward_and_log_det(h, context=context)
+            return (h, total + ld), None
+
+        (x, total), _ = jax.lax.scan(body, (x, _zeros_batch(x)), self.steps)
+        return x, total
+
+    def inverse_and_log_det(self, y, *, context=None):
+        if is_initializing():
+            return self._inverse_init(y, context)
+
+        def body(carry, step):
+            h, total = carry
+            h, ld = step.inverse_and_log_det(h, context=context)
+            return (h, total + ld), None
+
+        (y, total), _ = jax.lax.scan(body, (y, _zeros_batch(y)), self.steps, reverse=True)
+        return y, total
+
+    def _inverse_init(self, y, context):
+        """Init mode: run the steps eagerly (data -> latent order) and write them back."""
+        steps = [self.step(k) for k in range(self.num_steps)]
+        total = None
+        for step in reversed(steps):
+            y, ld = step.inverse_and_log_det(y, context=context)
+            total = ld if total is None else total + ld
+        restacked = jax.tree.map(lambda *a: jnp.stack(a), *steps)
+        nnx.update(self.steps, nnx.state(restacked))
+        return y, total

@@ -1,0 +1,132 @@
+"""Orbax checkpoints of a run: the latest N steps plus the best by validation.
+
+Layout: ``<run>/checkpoints/latest/<step>/`` (``keep`` most recent) and
+``<run>/checkpoints/best/<step>/`` (one: the lowest validation NLL so far). Each holds
+``state`` (the model's trainable ``params``, its other variables ``rest``, the optimiser
+state ``opt``: every pytree stored as its flattened leaves, rebuilt against a freshly built
+template) and ``meta`` (JSON: step, seed, RNG key data, data-iterator position, guard
+counters, best validation NLL). A checkpoint never holds NaN or inf: :meth:`save` refuses.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+logging.getLogger("absl").setLevel(logging.WARNING)
+
+
+def _to_host(leaf: Any) -> np.ndarray:
+    if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+        leaf = jax.random.key_data(leaf)
+    return np.asarray(leaf)
+
+
+def flatten(tree: Any) -> dict[str, np.ndarray]:
+    """A pytree's leaves as ``{"000000": array, ...}`` (typed PRNG keys as key data)."""
+    return {f"{i:06d}": _to_host(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(tree))}
+
+
+def unflatten(template: Any, flat: dict[str, Any], what: str = "state") -> Any:
+    """Rebuild a pytree shaped like ``template`` from :func:`flatten` output."""
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    if len(leaves) != len(flat):
+        raise ValueError(
+            f"checkpoint {what} has {len(flat)} arrays but the model built from config.json "
+            f"has {len(leaves)}: the code changed since the run was saved"
+        )
+    out = []
+    for i, leaf in enumerate(leaves):
+        value = np.asarray(flat[f"{i:06d}"])
+        if tuple(value.shape) != tuple(np.shape(leaf)) and not (
+            isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key)
+        ):
+            raise ValueError(
+                f"checkpoint {what} array {i} has shape {value.shape}, the model expects "
+                f"{np.shape(leaf)}: the code or config changed since the run was saved"
+            )
+        if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
+            out.append(jax.random.wrap_key_data(jnp.asarray(value)))
+        else:
+            out.append(jnp.asarray(value, dtype=getattr(leaf, "dtype", None)))
+    return jax.tree_util.tree_unflatten(treedef, out)
+
+
+def all_finite(flat: dict[str, np.ndarray]) -> bool:
+    """Whether every floating-point array is finite."""
+    return all(
+        np.all(np.isfinite(v)) for v in flat.values() if np.issubdtype(v.dtype, np.inexact)
+    )
+
+
+class Checkpointer:
+    """Latest-N plus best-by-validation orbax checkpoints under ``directory``."""
+
+    def __init__(self, directory: str | Path, *, keep: int = 3):
+        import orbax.checkpoint as ocp
+
+        self._ocp = ocp
+        self.directory = Path(directory)
+
+        def manager(sub: str, n: int):
+            opts = ocp.CheckpointManagerOptions(
+                max_to_keep=n, create=True, enable_async_checkpointing=False
+            )
+            return ocp.CheckpointManager((self.directory / sub).absolute(), options=opts)
+
+        self.managers = {"latest": manager("latest", max(1, keep)), "best": manager("best", 1)}
+
+    def steps(self, which: str = "latest") -> list[int]:
+        return list(self.managers[which].all_steps())
+
+    def latest_step(self, which: str = "latest") -> int | None:
+        return self.managers[which].latest_step()
+
+    def save(self, step: int, state: dict[str, Any], meta: dict, *, which: str = "latest"):
+        """Save ``state`` (dict of pytrees) and JSON ``meta`` at ``step``; refuses NaN/inf."""
+        ocp = self._ocp
+        flat = {name: flatten(tree) for name, tree in state.items()}
+        for name, group in flat.items():
+            if not all_finite(group):
+                raise FloatingPointError(
+                    f"refusing to checkpoint step {step}: the {name} hold NaN or inf"
+                )
+        mgr = self.managers[which]
+        if step in mgr.all_steps():
+            mgr.delete(step)
+        mgr.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(flat), meta=ocp.args.JsonSave(dict(meta))
+            ),
+        )
+        mgr.wait_until_finished()
+
+    def restore(
+        self, templates: dict[str, Any], *, which: str = "latest", step: int | None = None
+    ) -> tuple[dict[str, Any], dict]:
+        """Restore ``(state, meta)``; ``templates`` give each state entry's pytree shape."""
+        ocp = self._ocp
+        mgr = self.managers[which]
+        step = mgr.latest_step() if step is None else step
+        if step is None:
+            raise FileNotFoundError(f"no {which} checkpoint in {self.directory}")
+        got = mgr.restore(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()),
+        )
+        flat = got["state"]
+        state = {
+            name: unflatten(template, flat.get(name, {}), name)
+            for name, template in templates.items()
+        }
+        return state, dict(got["meta"])
+
+    def close(self):
+        for mgr in self.managers.values():
+            mgr.close()

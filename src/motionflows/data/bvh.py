@@ -1,0 +1,363 @@
+"""BVH reader and vectorised forward kinematics (own numpy code).
+
+A BVH file has a ``HIERARCHY`` section (``ROOT``/``JOINT``/``End Site`` blocks with an
+``OFFSET`` and, for joints, ``CHANNELS n name...``) and a ``MOTION`` section
+(``Frames: F``, ``Frame Time: dt`` and F lines of channel values).
+
+Conventions used by :func:`forward_kinematics` (the usual ones, as in Blender and bvhio):
+
+* Rotation channels are in degrees and compose in the order they are listed: for channels
+  ``Zrotation Xrotation Yrotation`` the joint's local rotation is ``R = Rz @ Rx @ Ry``
+  (column vectors, child-to-parent).
+* A joint's local translation is its ``OFFSET``; if the joint has position channels their
+  values *replace* the corresponding offset components (for a root they are the global
+  position; on Bandai's other joints they equal the offset).
+* World transforms: ``R_w[j] = R_w[parent] @ R[j]`` and
+  ``p_w[j] = p_w[parent] + R_w[parent] @ t[j]``.
+
+Any malformed input raises :class:`motionflows.errors.MotionDataError` naming the file,
+the line and the problem; nothing is returned partially.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from motionflows.errors import MotionDataError
+
+_POS = ("Xposition", "Yposition", "Zposition")
+_ROT = ("Xrotation", "Yrotation", "Zrotation")
+VALID_CHANNELS = _POS + _ROT
+
+
+@dataclasses.dataclass(frozen=True)
+class BVH:
+    """A parsed BVH file.
+
+    Attributes:
+      names: (J,) joint names in file order (End Sites excluded).
+      parents: (J,) parent index per joint (-1 for the root).
+      offsets: (J, 3) float64 joint offsets in file units.
+      channels: per joint, the tuple of channel names (possibly empty).
+      channel_start: (J,) index of each joint's first channel in a motion row.
+      end_sites: tuple of (parent joint index, (3,) offset) per End Site.
+      motion: (F, C) float64 channel values.
+      frame_time: seconds per frame.
+      path: where the data came from (for messages).
+    """
+
+    names: tuple[str, ...]
+    parents: tuple[int, ...]
+    offsets: np.ndarray
+    channels: tuple[tuple[str, ...], ...]
+    channel_start: tuple[int, ...]
+    end_sites: tuple[tuple[int, np.ndarray], ...]
+    motion: np.ndarray
+    frame_time: float
+    path: str = "<string>"
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.motion.shape[0])
+
+    @property
+    def fps(self) -> float:
+        return 1.0 / self.frame_time
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise MotionDataError(
+                f"joint {name!r} is not in the file (joints: {', '.join(self.names)}); "
+                "use a skeleton mapping that matches this file",
+                path=self.path,
+            ) from None
+
+
+def _err(msg: str, path: str, line: int | None) -> MotionDataError:
+    return MotionDataError(msg, path=path, line=line)
+
+
+def read_bvh(path: str | os.PathLike) -> BVH:
+    """Parse a BVH file from disk (see :func:`parse_bvh`)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        raise MotionDataError("file not found; check the path", path=str(p)) from None
+    except OSError as err:
+        raise MotionDataError(f"cannot read the file ({err})", path=str(p)) from None
+    return parse_bvh(text, path=str(p))
+
+
+def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
+    """Parse BVH text into a :class:`BVH`; raise ``MotionDataError`` on any problem."""
+    lines = text.splitlines()
+    if not any(line.strip() for line in lines):
+        raise _err("the file is empty; expected a BVH file starting with HIERARCHY", path, 1)
+
+    # ---- HIERARCHY -------------------------------------------------------------------
+    tokens: list[tuple[str, int]] = []  # (token, 1-based line) of the hierarchy part
+    motion_line = None
+    for i, line in enumerate(lines):
+        stripped = line.strip()
+        if stripped.upper().startswith("MOTION"):
+            motion_line = i
+            break
+        for tok in stripped.replace("{", " { ").replace("}", " } ").split():
+            tokens.append((tok, i + 1))
+    if not tokens or tokens[0][0].upper() != "HIERARCHY":
+        line = tokens[0][1] if tokens else 1
+        raise _err("missing HIERARCHY section (a BVH file starts with HIERARCHY)", path, line)
+    if motion_line is None:
+        raise _err(
+            "missing MOTION section after the hierarchy (the file may be truncated)",
+            path,
+            len(lines),
+        )
+
+    names: list[str] = []
+    parents: list[int] = []
+    offsets: list[np.ndarray] = []
+    channels: list[tuple[str, ...]] = []
+    end_sites: list[tuple[int, np.ndarray]] = []
+    pos = 1
+    n_tok = len(tokens)
+
+    def take(expected: str | None = None) -> tuple[str, int]:
+        nonlocal pos
+        if pos >= n_tok:
+            last = tokens[-1][1] if tokens else 1
+            want = f" (expected {expected!r})" if expected else ""
+            raise _err(f"hierarchy ends unexpectedly{want}", path, last)
+        tok, ln = tokens[pos]
+        pos += 1
+        if expected is not None and tok.upper() != expected.upper():
+            raise _err(f"expected {expected!r} but found {tok!r}", path, ln)
+        return tok, ln
+
+    def number(ln_hint: int) -> float:
+        tok, ln = take()
+        try:
+            value = float(tok)
+        except ValueError:
+            raise _err(f"expected a number but found {tok!r}", path, ln) from None
+        if not math.isfinite(value):
+            raise _err(f"non-finite value {tok!r} in the hierarchy", path, ln)
+        return value
+
+    def parse_offset() -> np.ndarray:
+        _, ln = take("OFFSET")
+        return np.array([number(ln), number(ln), number(ln)], dtype=np.float64)
+
+    def parse_joint(parent: int, is_end: bool) -> None:
+        take("{")
+        offset = parse_offset()
+        if is_end:
+            end_sites.append((parent, offset))
+            take("}")
+            return
+        index = len(names) - 1  # the caller appended this joint's name
+        offsets.append(offset)
+        tok, ln = tokens[pos] if pos < n_tok else ("", 0)
+        chans: tuple[str, ...] = ()
+        if tok.upper() == "CHANNELS":
+            take()
+            count_tok, cln = take()
+            try:
+                count = int(count_tok)
+            except ValueError:
+                raise _err(f"CHANNELS count {count_tok!r} is not an integer", path, cln) from None
+            if count < 0 or count > 6:
+                raise _err(f"CHANNELS count {count} must be between 0 and 6", path, cln)
+            got = []
+            for _ in range(count):
+                ctok, cl = take()
+                if ctok not in VALID_CHANNELS:
+                    raise _err(
+                        f"unknown channel name {ctok!r}; valid: {', '.join(VALID_CHANNELS)}",
+                        path,
+                        cl,
+                    )
+                got.append(ctok)
+            if len(set(got)) != len(got):
+                raise _err(f"repeated channel in {' '.join(got)}", path, cln)
+            chans = tuple(got)
+        channels.append(chans)
+        while True:
+            tok, ln = take()
+            key = tok.upper()
+            if key == "}":
+                return
+            if key == "JOINT":
+                name, _ = take()
+                names.append(name)
+                parents.append(index)
+                parse_joint(index, False)
+            elif key == "END":
+                take("Site")
+                parse_joint(index, True)
+            else:
+                raise _err(f"unexpected {tok!r} inside joint {names[index]!r}", path, ln)
+
+    tok, ln = take()
+    if tok.upper() != "ROOT":
+        raise _err(f"expected ROOT after HIERARCHY but found {tok!r}", path, ln)
+    root_name, _ = take()
+    names.append(root_name)
+    parents.append(-1)
+    parse_joint(-1, False)
+    if pos < n_tok:
+        tok, ln = tokens[pos]
+        raise _err(f"unexpected {tok!r} after the root joint (only one ROOT is supported)",
+                   path, ln)
+    if len(set(names)) != len(names):
+        raise _err("joint names are not unique", path, tokens[0][1])
+
+    # ---- MOTION ----------------------------------------------------------------------
+    i = motion_line + 1
+
+    def header(label: str) -> tuple[str, int]:
+        nonlocal i
+        while i < len(lines) and not lines[i].strip():
+            i += 1
+        if i >= len(lines):
+            raise _err(f"missing '{label}:' line in MOTION", path, len(lines))
+        line = lines[i].strip()
+        if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "") + ":"):
+            raise _err(f"expected '{label}:' but found {line[:40]!r}", path, i + 1)
+        i += 1
+        return line.split(":", 1)[1].strip(), i
+
+    frames_txt, frames_ln = header("Frames")
+    try:
+        n_frames = int(frames_txt)
+    except ValueError:
+        raise _err(f"Frames count {frames_txt!r} is not an integer", path, frames_ln) from None
+    if n_frames < 1:
+        raise _err(f"Frames is {n_frames}; a motion needs at least one frame", path, frames_ln)
+    ft_txt, ft_ln = header("Frame Time")
+    try:
+        frame_time = float(ft_txt)
+    except ValueError:
+        raise _err(f"Frame Time {ft_txt!r} is not a number", path, ft_ln) from None
+    if not (math.isfinite(frame_time) and frame_time > 0):
+        raise _err(f"Frame Time must be a positive number, got {ft_txt!r}", path, ft_ln)
+
+    n_chan = sum(len(c) for c in channels)
+    data_lines = []
+    line_numbers = []
+    for j in range(i, len(lines)):
+        if lines[j].strip():
+            data_lines.append(lines[j])
+            line_numbers.append(j + 1)
+    if len(data_lines) < n_frames:
+        raise _err(
+            f"truncated motion: Frames says {n_frames} but only {len(data_lines)} frame lines "
+            "follow; re-export or re-download the file",
+            path,
+            len(lines),
+        )
+    if len(data_lines) > n_frames:
+        raise _err(
+            f"Frames says {n_frames} but {len(data_lines)} frame lines follow; fix the "
+            "Frames count",
+            path,
+            line_numbers[n_frames],
+        )
+    split = [ln.split() for ln in data_lines]
+    counts = np.fromiter((len(s) for s in split), dtype=np.int64, count=len(split))
+    bad = np.flatnonzero(counts != n_chan)
+    if bad.size:
+        k = int(bad[0])
+        raise _err(
+            f"frame {k} has {counts[k]} values but the hierarchy declares {n_chan} channels",
+            path,
+            line_numbers[k],
+        )
+    try:
+        motion = np.array([v for s in split for v in s], dtype=np.float64)
+    except ValueError:
+        for k, s in enumerate(split):
+            for v in s:
+                try:
+                    float(v)
+                except ValueError:
+                    raise _err(f"non-numeric value {v!r} in frame {k}", path,
+                               line_numbers[k]) from None
+        raise  # pragma: no cover
+    motion = motion.reshape(n_frames, n_chan)
+    finite = np.isfinite(motion)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite.all(axis=1))[0])
+        raise _err(f"non-finite value in frame {k}", path, line_numbers[k])
+
+    starts = np.cumsum([0] + [len(c) for c in channels])[:-1]
+    return BVH(
+        names=tuple(names),
+        parents=tuple(parents),
+        offsets=np.stack(offsets),
+        channels=tuple(channels),
+        channel_start=tuple(int(s) for s in starts),
+        end_sites=tuple(end_sites),
+        motion=motion,
+        frame_time=frame_time,
+        path=path,
+    )
+
+
+def _axis_rotation(axis: str, angle_rad: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotation matrices about one axis (right-handed, column vectors)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    if axis == "X":
+        rows = [[one, zero, zero], [zero, c, -s], [zero, s, c]]
+    elif axis == "Y":
+        rows = [[c, zero, s], [zero, one, zero], [-s, zero, c]]
+    else:
+        rows = [[c, -s, zero], [s, c, zero], [zero, zero, one]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def local_transforms(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame local rotations (F, J, 3, 3) and translations (F, J, 3)."""
+    f = bvh.num_frames
+    n = len(bvh.names)
+    rot = np.broadcast_to(np.eye(3), (f, n, 3, 3)).copy()
+    trans = np.broadcast_to(bvh.offsets, (f, n, 3)).copy()
+    for j, chans in enumerate(bvh.channels):
+        start = bvh.channel_start[j]
+        for k, ch in enumerate(chans):
+            values = bvh.motion[:, start + k]
+            if ch in _POS:
+                trans[:, j, _POS.index(ch)] = values
+            else:
+                rot[:, j] = rot[:, j] @ _axis_rotation(ch[0], np.deg2rad(values))
+    return rot, trans
+
+
+def forward_kinematics(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
+    """World joint positions (F, J, 3) and rotations (F, J, 3, 3), in file units.
+
+    ``R_w[j] = R_w[parent] @ R_local[j]``, ``p_w[j] = p_w[parent] + R_w[parent] @ t[j]``;
+    vectorised over frames, one pass over joints in file order (parents come first).
+    """
+    rot, trans = local_transforms(bvh)
+    world_r = np.empty_like(rot)
+    world_p = np.empty_like(trans)
+    for j, parent in enumerate(bvh.parents):
+        if parent < 0:
+            world_r[:, j] = rot[:, j]
+            world_p[:, j] = trans[:, j]
+        else:
+            world_r[:, j] = world_r[:, parent] @ rot[:, j]
+            world_p[:, j] = world_p[:, parent] + np.einsum(
+                "fab,fb->fa", world_r[:, parent], trans[:, j]
+            )
+    return world_p, world_r

@@ -1,0 +1,125 @@
+"""Control trajectories for sampling: named presets and user files.
+
+A control is (T, 3) float32 per frame in the DESIGN units: ``forward`` (m/frame),
+``sideways`` (m/frame, + = left), ``turn`` (rad/frame, + = counter-clockwise seen from
+above, i.e. a left turn). Presets are built in m/s and rad/s and divided by ``fps``;
+changes between phases are smoothed over about 0.5 s.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from motionflows.data.features import gaussian_smooth
+from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS
+
+WALK, RUN, BACK, SIDE = 1.1, 2.4, -0.85, 0.5  # m/s (Bandai dev-set means)
+
+PRESETS: tuple[str, ...] = (
+    "stand", "walk", "run", "walk-turn-left", "walk-turn-right", "walk-then-run",
+    "walk-turn-run", "figure-eight", "sidestep-left", "sidestep-right", "walk-back",
+)  # fmt: skip
+
+
+def _phases(u: np.ndarray, name: str) -> np.ndarray:
+    """(T, 3) m/s, m/s, rad/s as a function of normalised time u in [0, 1)."""
+    fwd, side, turn = np.zeros_like(u), np.zeros_like(u), np.zeros_like(u)
+    if name == "stand":
+        pass
+    elif name == "walk":
+        fwd[:] = WALK
+    elif name == "run":
+        fwd[:] = RUN
+    elif name in ("walk-turn-left", "walk-turn-right"):
+        fwd[:] = WALK  # the turn is set in preset()
+    elif name == "walk-then-run":
+        fwd[:] = np.where(u < 0.5, WALK, RUN)
+    elif name == "walk-turn-run":
+        fwd[:] = np.where(u < 0.6, WALK, RUN)  # the turn is set in preset()
+    elif name == "figure-eight":
+        fwd[:] = WALK
+        turn[:] = np.where(u < 0.5, 1.0, -1.0)
+    elif name in ("sidestep-left", "sidestep-right"):
+        side[:] = SIDE if name.endswith("left") else -SIDE
+    elif name == "walk-back":
+        fwd[:] = BACK
+    return np.stack([fwd, side, turn], -1)
+
+
+def preset(name: str, seconds: float, fps: float = DEFAULT_FPS) -> np.ndarray:
+    """Control trajectory ``name`` of ``round(seconds * fps)`` frames, (T, 3) float32.
+
+    ``walk-turn-left/right`` turn by about 90 degrees in the middle third; ``figure-eight``
+    makes a full left circle then a full right circle at walking speed.
+    """
+    if name not in PRESETS:
+        raise ValueError(f"unknown control preset {name!r}; valid: {', '.join(PRESETS)}")
+    if not (np.isfinite(seconds) and seconds > 0 and np.isfinite(fps) and fps > 0):
+        raise ValueError(f"seconds and fps must be positive, got {seconds}, {fps}")
+    n = max(1, int(round(seconds * fps)))
+    u = (np.arange(n) + 0.5) / n
+    c = _phases(u, name)
+    if name == "figure-eight":
+        # one full circle each way over the clip
+        c[:, 2] = np.where(u < 0.5, 1.0, -1.0) * 2 * np.pi / (0.5 * n / fps)
+    if name in ("walk-turn-left", "walk-turn-right", "walk-turn-run"):
+        sign = -1.0 if name.endswith("right") else 1.0
+        lo, hi = (0.25, 0.5) if name == "walk-turn-run" else (0.35, 0.65)
+        mask = (u >= lo) & (u < hi)
+        c[mask, 2] = sign * np.deg2rad(90.0) / max(mask.sum() / fps, 1e-9)
+    total_turn = c[:, 2].sum()
+    c = gaussian_smooth(c, 0.25 * fps) if name != "figure-eight" else c
+    if total_turn != 0:  # keep the exact total heading change through the smoothing
+        c[:, 2] *= total_turn / c[:, 2].sum() if c[:, 2].sum() != 0 else 1.0
+    return (c / fps).astype(np.float32)
+
+
+def validate_control(control, *, path: str | None = None) -> np.ndarray:
+    """Check a (T, 3) finite control array and return it as float32."""
+    where = f" in {path}" if path else ""
+    arr = np.asarray(control)
+    if arr.ndim != 2 or arr.shape[1] != CONTROL_DIM or arr.shape[0] < 1:
+        raise ValueError(
+            f"control{where} must have shape (T, {CONTROL_DIM}) = (forward m/frame, sideways "
+            f"m/frame, turn rad/frame), got {arr.shape}"
+        )
+    if not np.issubdtype(arr.dtype, np.number):
+        raise ValueError(f"control{where} must be numeric, got dtype {arr.dtype}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"control{where} has non-finite values")
+    return arr.astype(np.float32)
+
+
+def load_control(path_or_name: str | os.PathLike, seconds: float | None = None,
+                 fps: float = DEFAULT_FPS) -> np.ndarray:
+    """A preset name (needs ``seconds``) or a ``.npy`` file holding a (T, 3) array.
+
+    With a file and ``seconds`` given, the control is cut or repeated-last-frame padded to
+    ``round(seconds * fps)`` frames.
+    """
+    text = str(path_or_name)
+    if text in PRESETS:
+        if seconds is None:
+            raise ValueError(f"preset {text!r} needs seconds=")
+        return preset(text, seconds, fps)
+    p = Path(text)
+    if p.suffix != ".npy":
+        raise ValueError(f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a "
+                         ".npy file")
+    if not p.exists():
+        raise ValueError(f"control file {p} not found")
+    try:
+        arr = np.load(p, allow_pickle=False)
+    except Exception as err:
+        raise ValueError(f"cannot read control file {p}: {err}") from None
+    arr = validate_control(arr, path=str(p))
+    if seconds is not None:
+        n = max(1, int(round(seconds * fps)))
+        if len(arr) >= n:
+            arr = arr[:n]
+        else:
+            arr = np.concatenate([arr, np.repeat(arr[-1:], n - len(arr), 0)])
+    return arr

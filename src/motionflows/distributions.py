@@ -1,0 +1,243 @@
+"""Base densities (``Normal``, ``StudentT``) and ``Transformed(base, bijector)``.
+
+Every distribution has an ``event_shape`` (for motion flows usually (T, D)); ``log_prob(x)``
+sums over the event axes and returns the leading (batch) shape of ``x``. Sampling takes an
+explicit ``jax.random`` key and a ``temperature`` that scales the standard noise:
+
+    Normal:    x = loc + scale * temperature * eps,   eps ~ N(0, 1)
+    StudentT:  x = loc + scale * temperature * eps,   eps ~ t(df)
+
+so temperature 0 returns the mode ``loc`` exactly. ``Transformed`` pushes base samples
+through ``bijector.forward`` (latent -> data) and scores data with
+``log p(x) = log p_base(z) + log|det dz/dx|``, z = ``bijector.inverse(x)``.
+
+All are Flax NNX modules (pytrees). ``loc`` / ``scale`` / ``df`` are stored as plain arrays
+(not ``nnx.Param``), so optimisers over ``nnx.Param`` do not train them; they may be traced
+arrays (e.g. a conditional prior built inside a jitted function).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+Array = jax.Array
+
+__all__ = ["Normal", "StudentT", "Transformed"]
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _event_shape(event_shape: Sequence[int | None] | int) -> tuple[int | None, ...]:
+    if isinstance(event_shape, int):
+        event_shape = (event_shape,)
+    out = tuple(None if d is None else int(d) for d in event_shape)
+    if any(d is not None and d < 0 for d in out):
+        raise ValueError(f"event_shape must hold non-negative sizes (or None), got {out}")
+    return out
+
+
+def _as_param(value, name: str, event_shape) -> Array | None:
+    if value is None:
+        return None
+    arr = jnp.asarray(value, jnp.float32) if not hasattr(value, "dtype") else jnp.asarray(value)
+    k = len(event_shape)
+    tail = arr.shape[max(arr.ndim - k, 0) :]
+    ev = event_shape[len(event_shape) - len(tail) :]
+    for a, e in zip(tail, ev, strict=True):
+        if e is not None and a not in (1, e):
+            raise ValueError(
+                f"{name} of shape {tuple(arr.shape)} does not broadcast to event_shape "
+                f"{event_shape}"
+            )
+    return arr
+
+
+class _Base(nnx.Module):
+    """Shared plumbing of the factorised base densities."""
+
+    _name = "Distribution"
+
+    def __init__(self, event_shape, loc=None, scale=None):
+        self.event_shape = _event_shape(event_shape)
+        self.loc = _as_param(loc, f"{self._name} loc", self.event_shape)
+        self.scale = _as_param(scale, f"{self._name} scale", self.event_shape)
+
+    # -- shapes
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Leading shape of loc / scale beyond the event (() for unbatched parameters)."""
+        k = len(self.event_shape)
+        shapes = [p.shape[: max(p.ndim - k, 0)] for p in (self.loc, self.scale) if p is not None]
+        return tuple(jnp.broadcast_shapes(*shapes)) if shapes else ()
+
+    def _concrete_event(self) -> tuple[int, ...]:
+        if any(d is None for d in self.event_shape):
+            raise ValueError(
+                f"{self._name} with event_shape {self.event_shape} (None = any size) cannot be "
+                f"sampled; build it with concrete sizes, e.g. {self._name}((T, D))"
+            )
+        return tuple(self.event_shape)  # type: ignore[return-value]
+
+    def _check(self, x: Array) -> None:
+        k = len(self.event_shape)
+        shape = tuple(getattr(x, "shape", ()))
+        ok = len(shape) >= k and all(
+            e is None or s == e for s, e in zip(shape[len(shape) - k :], self.event_shape)
+        )
+        if not ok:
+            want = ", ".join("?" if e is None else str(e) for e in self.event_shape)
+            raise ValueError(
+                f"{self._name}.log_prob expects (..., {want}) inputs (event_shape "
+                f"{self.event_shape}), got shape {shape}"
+            )
+
+    def _standardise(self, x: Array) -> tuple[Array, Array]:
+        """(u, log_scale) with u = (x - loc) / scale, broadcast to x's shape."""
+        u = x if self.loc is None else x - self.loc
+        if self.scale is None:
+            return u, jnp.zeros((), u.dtype)
+        return u / self.scale, jnp.log(self.scale)
+
+    def _event_sum(self, v: Array) -> Array:
+        k = len(self.event_shape)
+        return jnp.sum(v, axis=tuple(range(v.ndim - k, v.ndim))) if k else v
+
+    def _noise(self, key: Array, shape: tuple[int, ...]) -> Array:
+        raise NotImplementedError
+
+    def mode(self) -> Array:
+        """The mode (= loc, or zeros) with shape batch_shape + event_shape."""
+        shape = self.batch_shape + self._concrete_event()
+        return jnp.zeros(shape, jnp.float32) if self.loc is None else jnp.broadcast_to(
+            self.loc, shape
+        )
+
+    def sample(
+        self, key: Array, sample_shape: Sequence[int] | int = (), temperature: float = 1.0
+    ) -> Array:
+        """Draw sample_shape + batch_shape + event_shape values; temperature 0 = the mode."""
+        if isinstance(sample_shape, int):
+            sample_shape = (sample_shape,)
+        shape = tuple(sample_shape) + self.batch_shape + self._concrete_event()
+        if isinstance(temperature, (int, float)) and temperature == 0:
+            return jnp.broadcast_to(self.mode(), shape)
+        eps = self._noise(key, shape) * temperature
+        if self.scale is not None:
+            eps = eps * self.scale
+        if self.loc is not None:
+            eps = eps + self.loc
+        return eps
+
+
+class Normal(_Base):
+    """Factorised normal over ``event_shape`` (e.g. (T, D)).
+
+    ``Normal(event_shape)`` is the standard normal; ``Normal(event_shape, loc, scale)`` the
+    diagonal one (loc / scale broadcastable to event_shape, optionally with leading batch
+    axes). log p(x) = sum_event [-(x - loc)^2 / (2 scale^2) - log scale - log(2 pi) / 2].
+    ``None`` in event_shape matches any size in ``log_prob`` (e.g. ``Normal((None, 63))``).
+    """
+
+    _name = "Normal"
+
+    def log_prob(self, x: Array) -> Array:
+        """Sum of per-element log densities over the event axes: shape x.shape[:-k]."""
+        self._check(x)
+        u, log_scale = self._standardise(x)
+        return self._event_sum(-0.5 * jnp.square(u) - log_scale - _HALF_LOG_2PI)
+
+    def _noise(self, key, shape):
+        return jax.random.normal(key, shape, jnp.float32)
+
+
+class StudentT(_Base):
+    """Factorised Student-t with ``df`` degrees of freedom over ``event_shape``.
+
+    log p(x) = sum_event [lgamma((df + 1) / 2) - lgamma(df / 2) - log(pi df) / 2 - log scale
+                          - (df + 1) / 2 * log(1 + ((x - loc) / scale)^2 / df)].
+    """
+
+    _name = "StudentT"
+
+    def __init__(self, event_shape, df, loc=None, scale=None):
+        super().__init__(event_shape, loc, scale)
+        df_arr = jnp.asarray(df, jnp.float32)
+        if not isinstance(df_arr, jax.core.Tracer) and bool(jnp.any(df_arr <= 0)):
+            raise ValueError(f"StudentT needs df > 0, got {df}")
+        self.df = df_arr
+
+    def log_prob(self, x: Array) -> Array:
+        self._check(x)
+        u, log_scale = self._standardise(x)
+        df = self.df
+        const = (
+            jax.scipy.special.gammaln(0.5 * (df + 1.0))
+            - jax.scipy.special.gammaln(0.5 * df)
+            - 0.5 * jnp.log(jnp.pi * df)
+        )
+        return self._event_sum(const - log_scale - 0.5 * (df + 1.0) * jnp.log1p(u * u / df))
+
+    def _noise(self, key, shape):
+        return jax.random.t(key, self.df, shape, jnp.float32)
+
+
+class Transformed(nnx.Module):
+    """The density of x = bijector.forward(z, context), z ~ base.
+
+    ``log_prob(x, *, context=None)`` = base.log_prob(z) + log|det dz/dx| with
+    (z, log|det dz/dx|) = bijector.inverse_and_log_det(x, context=context).
+    ``sample(key, sample_shape, *, context=None, temperature=1.0)`` draws z from the base
+    at the given temperature and returns bijector.forward(z, context=context); temperature
+    0 is exact (the image of the base mode). The context's batch axes must match
+    sample_shape (+ the base's batch shape).
+    """
+
+    def __init__(self, base: _Base | nnx.Module, bijector: nnx.Module):
+        for name in ("log_prob", "sample"):
+            if not hasattr(base, name):
+                raise ValueError(f"Transformed base must have {name}(), got {type(base).__name__}")
+        for name in ("forward_and_log_det", "inverse_and_log_det"):
+            if not hasattr(bijector, name):
+                raise ValueError(
+                    f"Transformed bijector must have {name}(), got {type(bijector).__name__}"
+                )
+        self.base = base
+        self.bijector = bijector
+
+    @property
+    def event_shape(self):
+        return getattr(self.base, "event_shape", None)
+
+    def log_prob(self, x: Array, *, context: Array | None = None) -> Array:
+        z, log_det = self.bijector.inverse_and_log_det(x, context=context)
+        return self.base.log_prob(z) + log_det
+
+    def sample(
+        self,
+        key: Array,
+        sample_shape: Sequence[int] | int = (),
+        *,
+        context: Array | None = None,
+        temperature: float = 1.0,
+    ) -> Array:
+        z = self.base.sample(key, sample_shape, temperature=temperature)
+        return self.bijector.forward(z, context=context)
+
+    def sample_and_log_prob(
+        self,
+        key: Array,
+        sample_shape: Sequence[int] | int = (),
+        *,
+        context: Array | None = None,
+        temperature: float = 1.0,
+    ) -> tuple[Array, Array]:
+        """Samples and their log-density (one forward pass, no inverse)."""
+        z = self.base.sample(key, sample_shape, temperature=temperature)
+        x, log_det = self.bijector.forward_and_log_det(z, context=context)
+        return x, self.base.log_prob(z) - log_det

@@ -1,0 +1,781 @@
+"""MoGlow: an autoregressive, control-conditioned Glow with LSTM couplings (Henter et al. 2020).
+
+Model (the semantics of the official StyleGestures code, so its checkpoints import exactly)
+-------------------------------------------------------------------------------------------
+Poses x_t (D = 63 standardised values), controls c_t (3 standardised values). For a target
+frame t the condition is, frame by frame, the tau previous poses and the tau + 1 controls up
+to and including c_t, poses first::
+
+    cond_t = [x_{t-tau}, ..., x_{t-1}, c_{t-tau}, ..., c_t]       (tau*D + (tau+1)*C values)
+
+(663 for tau = 10). Each target pose passes through K flow steps, data -> latent::
+
+    ActNorm:         u = (x + bias) * exp(logs)
+    LU 1x1 map:      v = W u,  W = P L (U + diag(sign_s * exp(log_s)))
+    affine coupling: v_a = v[:31] passes, h = Linear(LSTM([v_a, cond_t]))  (64 outputs)
+                     shift = h[0::2], scale = sigmoid(h[1::2] + 2) + 1e-6,
+                     z_b = (v_b + shift) * scale
+
+and the base density is N(0, I) per frame (option: a standard Student-t). Each flow step's
+coupling LSTM (2 layers x 512 units by default) carries its own state along time: zero at
+the start of a window in training/scoring, carried frame by frame in sampling.
+
+The K steps are a :class:`motionflows.bijectors.Scan` of
+``Chain([AffineCoupling(LSTMConditioner), InvertibleLinear, ActNorm])`` run over whole
+sequences of target frames (the conditioner is a causal sequence model, a ``lax.scan`` over
+time). Step ``k`` of our stack is the official ``flow.layers.{K-1-k}`` (the Scan runs its
+last step first in the data -> latent direction; the official code runs layer 0 first).
+
+Scopes of :meth:`MoGlow.log_prob` (nats, standardised space, per window (B,)):
+
+* ``"official"``: frames tau .. T-1 given frames 0 .. tau-1 (and all T controls); the LSTM
+  starts at zero at frame tau. This is what the official code reports.
+* ``"window"``: all T frames, with a zero (mean-pose in standardised space) history and zero
+  controls before frame 0; the LSTM starts at zero before frame 0. This is exactly the
+  density of :meth:`MoGlow.sample` with the default (zero) seed.
+
+History dropout (training): each of the tau history poses in cond_t is zeroed independently
+per (window, t) with probability p, without rescaling; controls and z_a are never dropped.
+
+Sampling and streaming
+----------------------
+:meth:`MoGlow.sample` is one ``lax.scan`` over frames whose carry holds all K LSTM states
+and the pose/control history; the inverses of the K 1x1 maps are formed once per call.
+The latent of frame t (counted from the start of the stream) is
+``temperature * N(0, I)`` drawn with ``jax.random.fold_in(key, t)``; :meth:`stream_step`
+uses the same rule with ``state.t``, so passing the same ``key`` at every step reproduces
+``sample(key, ...)`` exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+from jax.scipy.linalg import solve_triangular
+
+from motionflows.bijectors import (
+    ActNorm,
+    AffineCoupling,
+    Chain,
+    InvertibleLinear,
+    Scan,
+    affine_params,
+    coupling_sizes,
+)
+from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.nets.lstm import LSTM, matmul
+
+Array = jax.Array
+
+__all__ = [
+    "FeedForwardConditioner",
+    "LSTMConditioner",
+    "MoGlow",
+    "StreamState",
+    "build_conditions",
+    "history_dropout_mask",
+    "import_stylegestures",
+    "load_stylegestures_checkpoint",
+]
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+# ----------------------------------------------------------------------------- conditioners
+
+
+class LSTMConditioner(nnx.Module):
+    """The official MoGlow coupling net: ``Linear(LSTM([x_a, cond]))`` with a zero head.
+
+    ``__call__(x_a (..., T, na), context (..., T, cond)) -> h (..., T, out)``: the LSTM runs
+    over time from a zero state (causal). ``step(x_a_t, cond_t, carry) -> (h_t, carry)``
+    runs one frame with an explicit carry (``initial_carry(batch_shape)``).
+    Head: ``w_out`` (hidden, out), ``b_out`` (out,), both zero at initialisation.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        context_features: int,
+        out_features: int,
+        *,
+        hidden: int = 512,
+        num_layers: int = 2,
+        compute_dtype: str | None = None,
+        rngs: nnx.Rngs,
+    ):
+        self.in_features = int(in_features)
+        self.context_features = int(context_features)
+        self.compute_dtype = compute_dtype
+        self.lstm = LSTM(
+            in_features + context_features,
+            hidden,
+            num_layers,
+            rngs=rngs,
+            compute_dtype=compute_dtype,
+        )
+        self.w_out = nnx.Param(jnp.zeros((hidden, out_features), jnp.float32))
+        self.b_out = nnx.Param(jnp.zeros((out_features,), jnp.float32))
+
+    def initial_carry(self, batch_shape: tuple[int, ...] = ()):
+        return self.lstm.initial_carry(batch_shape)
+
+    def _head(self, y: Array) -> Array:
+        return matmul(y, self.w_out[...], self.compute_dtype) + self.b_out[...]
+
+    def __call__(self, x_a: Array, context: Array) -> Array:
+        y, _ = self.lstm(jnp.concatenate([x_a, context], axis=-1))
+        return self._head(y)
+
+    def step(self, x_a: Array, context: Array, carry):
+        y, carry = self.lstm.step(jnp.concatenate([x_a, context], axis=-1), carry)
+        return self._head(y), carry
+
+
+class FeedForwardConditioner(nnx.Module):
+    """The Markov ablation: a per-frame MLP on [x_a, cond_t] (ReLU, zero head), no state.
+
+    Same interface as :class:`LSTMConditioner`; its carry is the empty tuple.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        context_features: int,
+        out_features: int,
+        *,
+        hidden: int = 512,
+        num_layers: int = 2,
+        compute_dtype: str | None = None,
+        rngs: nnx.Rngs,
+    ):
+        self.compute_dtype = compute_dtype
+        sizes = [in_features + context_features] + [hidden] * num_layers
+        ws, bs = [], []
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
+            bound = 1.0 / math.sqrt(fan_in)
+            ws.append(
+                nnx.Param(jax.random.uniform(rngs.params(), (fan_in, fan_out), minval=-bound,
+                                             maxval=bound))
+            )
+            bs.append(nnx.Param(jnp.zeros((fan_out,), jnp.float32)))
+        self.ws = nnx.List(ws)
+        self.bs = nnx.List(bs)
+        self.w_out = nnx.Param(jnp.zeros((sizes[-1], out_features), jnp.float32))
+        self.b_out = nnx.Param(jnp.zeros((out_features,), jnp.float32))
+
+    def initial_carry(self, batch_shape: tuple[int, ...] = ()):
+        return ()
+
+    def __call__(self, x_a: Array, context: Array) -> Array:
+        h = jnp.concatenate([x_a, context], axis=-1)
+        for w, b in zip(self.ws, self.bs, strict=True):
+            h = jax.nn.relu(matmul(h, w[...], self.compute_dtype) + b[...])
+        return matmul(h, self.w_out[...], self.compute_dtype) + self.b_out[...]
+
+    def step(self, x_a: Array, context: Array, carry):
+        return self(x_a, context), carry
+
+
+# ----------------------------------------------------------------------------- conditions
+
+
+def history_dropout_mask(key: Array, shape: tuple[int, ...], tau: int, rate: float) -> Array:
+    """Keep-mask (*shape, tau) float32: each history frame kept with probability 1 - rate."""
+    if rate <= 0.0:
+        return jnp.ones((*shape, tau), jnp.float32)
+    return jax.random.bernoulli(key, 1.0 - rate, (*shape, tau)).astype(jnp.float32)
+
+
+def build_conditions(
+    pose: Array,
+    control: Array,
+    tau: int,
+    *,
+    scope: str = "official",
+    dropout: float = 0.0,
+    key: Array | None = None,
+) -> tuple[Array, Array]:
+    """Targets and per-frame conditions of a batch of windows.
+
+    Args:
+      pose: (B, T, D), control (B, T, C) (standardised).
+      tau: history length.
+      scope: ``"official"`` (targets = frames tau..T-1) or ``"window"`` (all T frames, with
+        tau zero poses and zero controls before frame 0).
+      dropout: history-dropout probability (needs ``key`` when > 0).
+    Returns:
+      targets (B, T', D) and cond (B, T', tau*D + (tau+1)*C) with
+      cond[:, s] = [x_{t-tau}, ..., x_{t-1}, m * ..., c_{t-tau}, ..., c_t] for t = s + offset.
+    """
+    if scope == "window":
+        pose_p = jnp.pad(pose, [(0, 0)] * (pose.ndim - 2) + [(tau, 0), (0, 0)])
+        control_p = jnp.pad(control, [(0, 0)] * (control.ndim - 2) + [(tau, 0), (0, 0)])
+    elif scope == "official":
+        pose_p, control_p = pose, control
+    else:
+        raise ValueError(f"unknown scope {scope!r}: use 'official' or 'window'")
+    n = pose_p.shape[-2] - tau  # number of target frames
+    targets = pose_p[..., tau:, :]
+    hist = jnp.stack([pose_p[..., j : j + n, :] for j in range(tau)], axis=-2)  # (.., n, tau, D)
+    ctrl = jnp.stack([control_p[..., j : j + n, :] for j in range(tau + 1)], axis=-2)
+    if dropout > 0.0:
+        if key is None:
+            raise ValueError("history dropout > 0 needs a jax.random key")
+        mask = history_dropout_mask(key, hist.shape[:-2], tau, dropout)
+        hist = hist * mask[..., None]
+    batch = hist.shape[:-2]
+    cond = jnp.concatenate(
+        [hist.reshape(*batch, -1), ctrl.reshape(*batch, -1)], axis=-1
+    )
+    return targets, cond
+
+
+# ----------------------------------------------------------------------------- model
+
+
+class StreamState(NamedTuple):
+    """Carry of the frame-by-frame sampler (a pytree; jit-friendly).
+
+    carry: the K coupling-LSTM states, each array with a leading K axis (K, B, H).
+    poses: (B, tau, D) the last tau poses; controls: (B, tau, C) the last tau controls.
+    t: int32 scalar, frames produced so far (the key of frame t is fold_in(key, t)).
+    inv_w: (K, D, D) the inverses of the K 1x1 maps, formed once in ``init_stream``.
+    """
+
+    carry: Any
+    poses: Array
+    controls: Array
+    t: Array
+    inv_w: Array
+
+
+def _step_factory(pose_dim, cond_dim, hidden, num_layers, conditioner, compute_dtype, eps):
+    na, nb = coupling_sizes(pose_dim)
+    net_cls = LSTMConditioner if conditioner == "lstm" else FeedForwardConditioner
+
+    def make(rngs: nnx.Rngs):
+        net = net_cls(
+            na,
+            cond_dim,
+            2 * nb,
+            hidden=hidden,
+            num_layers=num_layers,
+            compute_dtype=compute_dtype,
+            rngs=rngs,
+        )
+        return Chain(
+            [
+                AffineCoupling(pose_dim, net, eps=eps),
+                InvertibleLinear(pose_dim, rngs=rngs),
+                ActNorm(pose_dim),
+            ]
+        )
+
+    return make
+
+
+class MoGlow(nnx.Module):
+    """MoGlow (see the module docstring).
+
+    Args:
+      pose_dim, control_dim: D and C (default 63 and 3 from ``motionflows.data.names``).
+      tau: history length (10).
+      num_steps: K flow steps (16).
+      hidden, num_layers: coupling LSTM size (512, 2).
+      conditioner: ``"lstm"`` (MoGlow) or ``"ff"`` (the Markov feed-forward ablation).
+      base: ``"normal"`` or ``"studentt"`` (standard, ``df`` degrees of freedom).
+      dropout: history-dropout probability used by :meth:`log_prob` when given a key.
+      compute_dtype: ``None`` (float32) or ``"bfloat16"`` for the conditioner matmuls.
+      rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
+    """
+
+    def __init__(
+        self,
+        pose_dim: int = POSE_DIM,
+        control_dim: int = CONTROL_DIM,
+        *,
+        tau: int = 10,
+        num_steps: int = 16,
+        hidden: int = 512,
+        num_layers: int = 2,
+        conditioner: str = "lstm",
+        base: str = "normal",
+        df: float = 5.0,
+        dropout: float = 0.0,
+        compute_dtype: str | None = None,
+        eps: float = 1e-6,
+        rngs: nnx.Rngs | Array,
+    ):
+        if conditioner not in ("lstm", "ff"):
+            raise ValueError(f"conditioner must be 'lstm' or 'ff', got {conditioner!r}")
+        if base not in ("normal", "studentt"):
+            raise ValueError(f"base must be 'normal' or 'studentt', got {base!r}")
+        if not 0.0 <= float(dropout) < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if int(tau) < 1 or int(num_steps) < 1 or int(pose_dim) < 2 or int(control_dim) < 0:
+            raise ValueError(
+                f"MoGlow needs tau >= 1, num_steps >= 1, pose_dim >= 2; got tau={tau}, "
+                f"num_steps={num_steps}, pose_dim={pose_dim}"
+            )
+        if compute_dtype is not None:
+            compute_dtype = jnp.dtype(compute_dtype).name
+        self.pose_dim = int(pose_dim)
+        self.control_dim = int(control_dim)
+        self.tau = int(tau)
+        self.num_steps = int(num_steps)
+        self.hidden = int(hidden)
+        self.num_layers = int(num_layers)
+        self.conditioner = conditioner
+        self.base = base
+        self.df = float(df)
+        self.dropout = float(dropout)
+        self.compute_dtype = compute_dtype
+        self.eps = float(eps)
+        self.cond_dim = self.tau * self.pose_dim + (self.tau + 1) * self.control_dim
+        if not isinstance(rngs, nnx.Rngs):
+            rngs = nnx.Rngs(rngs)
+        factory = _step_factory(
+            self.pose_dim,
+            self.cond_dim,
+            self.hidden,
+            self.num_layers,
+            conditioner,
+            compute_dtype,
+            self.eps,
+        )
+        self.flow = Scan(factory, self.num_steps, rngs=rngs)
+
+    # -- validation
+
+    def _check(self, pose: Array | None, control: Array, name: str) -> None:
+        c = getattr(control, "shape", None)
+        if c is None or len(c) != 3 or c[-1] != self.control_dim:
+            raise ValueError(
+                f"MoGlow.{name}: control must be (B, T, {self.control_dim}), got {c}"
+            )
+        if pose is not None:
+            p = getattr(pose, "shape", None)
+            if p is None or len(p) != 3 or p[-1] != self.pose_dim:
+                raise ValueError(f"MoGlow.{name}: pose must be (B, T, {self.pose_dim}), got {p}")
+            if p[:2] != c[:2]:
+                raise ValueError(
+                    f"MoGlow.{name}: pose {p} and control {c} must share (B, T)"
+                )
+
+    # -- base density
+
+    def base_log_prob(self, z: Array) -> Array:
+        """Per-frame base log-density summed over channels: (..., D) -> (...)."""
+        if self.base == "normal":
+            return -0.5 * jnp.sum(z * z + LOG_2PI, axis=-1)
+        df = self.df
+        const = (
+            math.lgamma(0.5 * (df + 1.0)) - math.lgamma(0.5 * df) - 0.5 * math.log(math.pi * df)
+        )
+        return jnp.sum(const - 0.5 * (df + 1.0) * jnp.log1p(z * z / df), axis=-1)
+
+    def _noise(self, key: Array, shape: tuple[int, ...]) -> Array:
+        if self.base == "normal":
+            return jax.random.normal(key, shape, jnp.float32)
+        return jax.random.t(key, self.df, shape, jnp.float32)
+
+    # -- sequence pass (training, scoring)
+
+    def inverse_and_log_det(
+        self,
+        pose: Array,
+        *,
+        context: Array,
+        scope: str = "official",
+        dropout: float = 0.0,
+        key: Array | None = None,
+    ) -> tuple[Array, Array]:
+        """Data -> latent for the target frames of windows.
+
+        pose (B, T, D), context = control (B, T, C) -> (z (B, T', D), log|det dz/dx| (B,)),
+        T' = T - tau ("official") or T ("window"). Used by ``initialize_from_data``.
+        """
+        self._check(pose, context, "inverse_and_log_det")
+        targets, cond = build_conditions(
+            pose, context, self.tau, scope=scope, dropout=dropout, key=key
+        )
+        return self.flow.inverse_and_log_det(targets, context=cond)
+
+    def log_prob(
+        self,
+        pose: Array,
+        control: Array,
+        *,
+        scope: str = "official",
+        key: Array | None = None,
+        dropout: float | None = None,
+    ) -> Array:
+        """Log-likelihood per window (B,) in nats (standardised space).
+
+        ``scope="official"``: frames tau..T-1 given the first tau; ``"window"``: all T frames
+        with a zero history. With ``key`` the training-time history dropout (probability
+        ``dropout``, default ``self.dropout``) is applied; without a key there is none.
+        """
+        rate = 0.0 if key is None else (self.dropout if dropout is None else float(dropout))
+        z, log_det = self.inverse_and_log_det(
+            pose, context=control, scope=scope, dropout=rate, key=key
+        )
+        return jnp.sum(self.base_log_prob(z), axis=-1) + log_det
+
+    def num_targets(self, num_frames: int, scope: str = "official") -> int:
+        """Scored frames per window of ``num_frames`` frames."""
+        return num_frames - self.tau if scope == "official" else num_frames
+
+    # -- frame-by-frame maps
+
+    def inverse_weights(self) -> Array:
+        """(K, D, D): W_k^-1 of every 1x1 map, by two triangular solves each."""
+        return jax.lax.map(_inv_step, self.flow.steps)
+
+    def initial_carry(self, batch: int):
+        """Zero LSTM states of all K steps: a pytree of (K, batch, H) arrays."""
+        k = self.num_steps
+        if self.conditioner == "ff":
+            return ()
+        zeros = jnp.zeros((k, batch, self.hidden), jnp.float32)
+        return tuple((zeros, zeros) for _ in range(self.num_layers))
+
+    def _frame_to_data(self, z_t: Array, cond_t: Array, carry, inv_w: Array):
+        """Latent -> data for one frame: z_t (B, D) -> (x_t (B, D), new carry).
+
+        Runs the K steps in the forward (sampling) order: step 0 first, as ``Scan``.
+        """
+
+        def body(x, xs):
+            step, state, w_inv = xs
+            coupling, _, actnorm = step.bijectors
+            z_a, z_b = x[..., : self.pose_dim // 2], x[..., self.pose_dim // 2 :]
+            h, state = coupling.conditioner.step(z_a, cond_t, state)
+            shift, scale = affine_params(h, coupling.eps)
+            x = jnp.concatenate([z_a, z_b / scale - shift], axis=-1)
+            x = x @ w_inv.T
+            x = actnorm.forward(x[..., None, :])[..., 0, :]
+            return x, state
+
+        x, carry = jax.lax.scan(body, z_t, (self.flow.steps, carry, inv_w))
+        return x, carry
+
+    def _frame_to_latent(self, x_t: Array, cond_t: Array, carry):
+        """Data -> latent for one frame: (z_t (B, D), log_det (B,), new carry).
+
+        Runs the K steps in the normalising order (step K-1 first), as ``Scan``.
+        """
+
+        def body(acc, xs):
+            y, ld = acc
+            step, state = xs
+            coupling, linear, actnorm = step.bijectors
+            y, ld_a = actnorm.inverse_and_log_det(y[..., None, :])
+            y, ld_l = linear.inverse_and_log_det(y)
+            y = y[..., 0, :]
+            y_a, y_b = y[..., : self.pose_dim // 2], y[..., self.pose_dim // 2 :]
+            h, state = coupling.conditioner.step(y_a, cond_t, state)
+            shift, scale = affine_params(h, coupling.eps)
+            y = jnp.concatenate([y_a, (y_b + shift) * scale], axis=-1)
+            ld = ld + ld_a + ld_l + jnp.sum(jnp.log(scale), axis=-1)
+            return (y, ld), state
+
+        ld0 = jnp.zeros(x_t.shape[:-1], jnp.float32)
+        (z, ld), carry = jax.lax.scan(body, (x_t, ld0), (self.flow.steps, carry), reverse=True)
+        return z, ld, carry
+
+    # -- sampling and streaming
+
+    def _seed(self, batch: int, seed_history: Array | None, seed_control: Array | None):
+        tau, d, c = self.tau, self.pose_dim, self.control_dim
+
+        def fit(arr, dim, name):
+            if arr is None:
+                return jnp.zeros((batch, tau, dim), jnp.float32)
+            arr = jnp.asarray(arr, jnp.float32)
+            if arr.ndim == 2:
+                arr = jnp.broadcast_to(arr[None], (batch, *arr.shape))
+            if arr.ndim != 3 or arr.shape[-1] != dim or arr.shape[0] != batch:
+                raise ValueError(
+                    f"MoGlow: {name} must be (B={batch}, S, {dim}) frames, got {arr.shape}"
+                )
+            arr = arr[:, -tau:]
+            short = tau - arr.shape[1]
+            return jnp.pad(arr, ((0, 0), (short, 0), (0, 0))) if short else arr
+
+        return fit(seed_history, d, "seed_history"), fit(seed_control, c, "seed_control")
+
+    def init_stream(
+        self,
+        batch: int,
+        seed_history: Array | None = None,
+        *,
+        seed_control: Array | None = None,
+    ) -> StreamState:
+        """Start a stream of ``batch`` characters.
+
+        seed_history: None (zeros: the official sampler's start) or (B, S, D) poses (the last
+        tau are used; fewer are left-padded with zeros). seed_control likewise (B, S, C).
+        """
+        poses, controls = self._seed(int(batch), seed_history, seed_control)
+        return StreamState(
+            carry=self.initial_carry(int(batch)),
+            poses=poses,
+            controls=controls,
+            t=jnp.zeros((), jnp.int32),
+            inv_w=self.inverse_weights(),
+        )
+
+    def _advance(self, state: StreamState, control_t: Array, z_t: Array):
+        batch = control_t.shape[0]
+        cond_t = jnp.concatenate(
+            [
+                state.poses.reshape(batch, -1),
+                state.controls.reshape(batch, -1),
+                control_t,
+            ],
+            axis=-1,
+        )
+        x_t, carry = self._frame_to_data(z_t, cond_t, state.carry, state.inv_w)
+        new = StreamState(
+            carry=carry,
+            poses=jnp.concatenate([state.poses[:, 1:], x_t[:, None]], axis=1),
+            controls=jnp.concatenate([state.controls[:, 1:], control_t[:, None]], axis=1),
+            t=state.t + 1,
+            inv_w=state.inv_w,
+        )
+        return x_t, new
+
+    def stream_step(
+        self,
+        state: StreamState,
+        control_t: Array,
+        key: Array,
+        *,
+        temperature: float = 1.0,
+    ) -> tuple[Array, StreamState]:
+        """One frame: control_t (B, C) -> (pose_t (B, D), new state). Jittable.
+
+        The latent is ``temperature * eps`` with eps drawn from ``fold_in(key, state.t)``:
+        passing the same key at every step reproduces :meth:`sample` with that key.
+        """
+        control_t = jnp.asarray(control_t, jnp.float32)
+        if control_t.ndim != 2 or control_t.shape != (state.poses.shape[0], self.control_dim):
+            raise ValueError(
+                f"MoGlow.stream_step: control_t must be (B={state.poses.shape[0]}, "
+                f"{self.control_dim}), got {control_t.shape}"
+            )
+        z_t = temperature * self._noise(
+            jax.random.fold_in(key, state.t), (control_t.shape[0], self.pose_dim)
+        )
+        return self._advance(state, control_t, z_t)
+
+    def generate(
+        self,
+        z: Array,
+        control: Array,
+        *,
+        seed_history: Array | None = None,
+        seed_control: Array | None = None,
+    ) -> Array:
+        """Latents z (B, T, D) and control (B, T, C) -> poses (B, T, D), frame by frame."""
+        self._check(None, control, "generate")
+        state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
+
+        def body(st, inputs):
+            c_t, z_t = inputs
+            x_t, st = self._advance(st, c_t, z_t)
+            return st, x_t
+
+        _, xs = jax.lax.scan(
+            body, state, (jnp.swapaxes(control, 0, 1), jnp.swapaxes(z, 0, 1))
+        )
+        return jnp.swapaxes(xs, 0, 1)
+
+    def sample(
+        self,
+        key: Array,
+        control: Array,
+        *,
+        seed_history: Array | None = None,
+        seed_control: Array | None = None,
+        temperature: float = 1.0,
+    ) -> Array:
+        """Poses (B, T, D) following control (B, T, C); one ``lax.scan`` over frames.
+
+        Frame t's latent is ``temperature * eps_t``, eps_t from ``fold_in(key, t)``
+        (temperature 0 gives the exact mode path of the latent). Jit it at the call site.
+        """
+        self._check(None, control, "sample")
+        control = jnp.asarray(control, jnp.float32)
+        state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
+
+        def body(st, c_t):
+            return self.stream_step(st, c_t, key, temperature=temperature)[::-1]
+
+        _, xs = jax.lax.scan(body, state, jnp.swapaxes(control, 0, 1))
+        return jnp.swapaxes(xs, 0, 1)
+
+
+def _inv_step(step) -> Array:
+    """W^-1 = U^-1 L^-1 P^T of one (unstacked) step's ``InvertibleLinear``."""
+    p, l, u = step.bijectors[1]._factors()
+    a = solve_triangular(l, p.T, lower=True, unit_diagonal=True)
+    return solve_triangular(u, a, lower=False)
+
+
+# ----------------------------------------------------------------------------- import
+
+
+def _np(state_dict: dict, name: str) -> np.ndarray:
+    if name not in state_dict:
+        raise ValueError(f"import_stylegestures: the state dict has no entry {name!r}")
+    value = state_dict[name]
+    if hasattr(value, "detach"):  # a torch tensor
+        value = value.detach().cpu().numpy()
+    return np.asarray(value, np.float32)
+
+
+def import_stylegestures(
+    state_dict: dict,
+    *,
+    pose_dim: int = POSE_DIM,
+    control_dim: int = CONTROL_DIM,
+    tau: int = 10,
+    prefix: str = "flow.layers.",
+    compute_dtype: str | None = None,
+    eps: float = 1e-6,
+) -> MoGlow:
+    """A :class:`MoGlow` holding the weights of an official StyleGestures MoGlow checkpoint.
+
+    ``state_dict`` maps the official parameter names (the checkpoint's "graph" entry) to
+    arrays (numpy or torch). K, the LSTM width and depth are read from the shapes. Official
+    conventions and how they map here (step k of ours = official layer K-1-k):
+
+    * ``actnorm.bias``/``logs`` (1, C, 1) -> ActNorm ``bias``/``logs`` (C,): both compute
+      (x + bias) * exp(logs) in the normalising direction.
+    * ``invconv.p``, ``sign_s``, ``l`` (strictly-lower part), ``log_s``, ``u`` (strictly-upper
+      part) -> ``P``, ``sign_s``, ``lower``, ``log_s``, ``upper``: the same
+      W = P (L' + I) (U' + diag(sign_s exp(log_s))), z_t = W x_t.
+    * ``f.lstm.weight_ih_l{n}`` (4H, in) etc. -> ``w_ih`` (in, 4H) (transposed), gate order
+      i, f, g, o in both; the LSTM input is [z_a, cond_t].
+    * ``f.linear.weight`` (2|b|, H), ``bias`` -> ``w_out`` (H, 2|b|), ``b_out``.
+    """
+    if not isinstance(state_dict, dict):
+        raise ValueError("import_stylegestures expects a dict of parameter name -> array")
+    layer_ids = sorted(
+        {
+            int(name[len(prefix):].split(".")[0])
+            for name in state_dict
+            if name.startswith(prefix) and name[len(prefix):].split(".")[0].isdigit()
+        }
+    )
+    if not layer_ids or layer_ids != list(range(len(layer_ids))):
+        raise ValueError(
+            f"import_stylegestures: found no consecutive '{prefix}<k>.' entries (got layers "
+            f"{layer_ids}); pass the checkpoint's 'graph' state dict"
+        )
+    k_steps = len(layer_ids)
+    first = f"{prefix}0.f."
+    hidden = _np(state_dict, first + "lstm.weight_hh_l0").shape[1]
+    num_layers = len([n for n in state_dict if n.startswith(first + "lstm.weight_hh_l")])
+    na, nb = coupling_sizes(pose_dim)
+    cond_dim = tau * pose_dim + (tau + 1) * control_dim
+    w_ih0 = _np(state_dict, first + "lstm.weight_ih_l0")
+    if w_ih0.shape != (4 * hidden, na + cond_dim):
+        raise ValueError(
+            f"import_stylegestures: {first}lstm.weight_ih_l0 has shape {w_ih0.shape}, expected "
+            f"(4*{hidden}, {na} + {cond_dim}) for pose_dim={pose_dim}, control_dim="
+            f"{control_dim}, tau={tau}; pass the values the checkpoint was trained with"
+        )
+    model = MoGlow(
+        pose_dim,
+        control_dim,
+        tau=tau,
+        num_steps=k_steps,
+        hidden=hidden,
+        num_layers=num_layers,
+        compute_dtype=compute_dtype,
+        eps=eps,
+        rngs=nnx.Rngs(0),
+    )
+    lower_mask = np.tril(np.ones((pose_dim, pose_dim), np.float32), -1)
+    upper_mask = lower_mask.T
+    per_step = []
+    for k in range(k_steps):
+        n = f"{prefix}{k_steps - 1 - k}."
+
+        def g(name, n=n):
+            return _np(state_dict, n + name)
+
+        arrays = {
+            "bias": g("actnorm.bias").reshape(pose_dim),
+            "logs": g("actnorm.logs").reshape(pose_dim),
+            "P": g("invconv.p"),
+            "sign_s": g("invconv.sign_s").reshape(pose_dim),
+            "lower": g("invconv.l") * lower_mask,
+            "upper": g("invconv.u") * upper_mask,
+            "log_s": g("invconv.log_s").reshape(pose_dim),
+            "w_out": g("f.linear.weight").T,
+            "b_out": g("f.linear.bias"),
+        }
+        for layer in range(num_layers):
+            arrays[f"w_ih{layer}"] = g(f"f.lstm.weight_ih_l{layer}").T
+            arrays[f"w_hh{layer}"] = g(f"f.lstm.weight_hh_l{layer}").T
+            arrays[f"b_ih{layer}"] = g(f"f.lstm.bias_ih_l{layer}")
+            arrays[f"b_hh{layer}"] = g(f"f.lstm.bias_hh_l{layer}")
+        per_step.append(arrays)
+    stacked = {name: np.stack([s[name] for s in per_step]) for name in per_step[0]}
+    steps = model.flow.steps
+    coupling, linear, actnorm = steps.bijectors
+    net = coupling.conditioner
+
+    def put(var, value):
+        if tuple(var.shape) != value.shape:
+            raise ValueError(
+                f"import_stylegestures: shape mismatch {value.shape} vs expected {var.shape}"
+            )
+        var[...] = jnp.asarray(value)
+
+    put(actnorm.bias, stacked["bias"])
+    put(actnorm.logs, stacked["logs"])
+    put(linear.P, stacked["P"])
+    put(linear.sign_s, stacked["sign_s"])
+    put(linear.lower, stacked["lower"])
+    put(linear.upper, stacked["upper"])
+    put(linear.log_s, stacked["log_s"])
+    put(net.w_out, stacked["w_out"])
+    put(net.b_out, stacked["b_out"])
+    for layer, mod in enumerate(net.lstm.layers):
+        put(mod.w_ih, stacked[f"w_ih{layer}"])
+        put(mod.w_hh, stacked[f"w_hh{layer}"])
+        put(mod.b_ih, stacked[f"b_ih{layer}"])
+        put(mod.b_hh, stacked[f"b_hh{layer}"])
+    return model
+
+
+def load_stylegestures_checkpoint(path: str, **kwargs) -> MoGlow:
+    """Read an official StyleGestures ``.pkg``/``.pt`` checkpoint (needs torch) and import it.
+
+    The checkpoint's ``"graph"`` entry (or the file itself, if it is a state dict) is
+    passed to :func:`import_stylegestures` with ``kwargs``.
+    """
+    try:
+        import torch  # noqa: PLC0415
+    except ImportError as err:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            "load_stylegestures_checkpoint needs PyTorch to read the .pt/.pkg file: "
+            "pip install torch (CPU build is enough), or pass a dict of numpy arrays to "
+            "import_stylegestures"
+        ) from err
+    data = torch.load(path, map_location="cpu", weights_only=False)
+    state = data.get("graph", data) if isinstance(data, dict) else data
+    if hasattr(state, "state_dict"):
+        state = state.state_dict()
+    return import_stylegestures(dict(state), **kwargs)

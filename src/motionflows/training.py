@@ -1,0 +1,681 @@
+"""The one training loop of motionflows, shared by every experiment module.
+
+``train(module, config, run_dir=...)`` builds the model (``module.build``), optionally
+initialises it from the first batch (``module.initialize``), then runs one jitted train
+step per batch:
+
+    (loss, metrics), grads = value_and_grad(module.loss)(params)   # nnx.Param leaves only
+    grads -> [clip values] -> [clip global norm] -> adam(w) with warm-up schedule
+    a step whose loss, gradient norm or update is NaN/inf is skipped inside the jitted
+    step (params and optimiser state kept) and counted.
+
+Determinism: the batch of step ``i`` is ``dataset.batch("train", B, seed=train.seed,
+index=i)`` and its key ``fold_in(train_key, i)``, so a resumed run reproduces the loss curve
+of an uninterrupted one. Modules defining ``fit(model, dataset[, config=...])`` (the
+closed-form baselines) are fitted instead of trained.
+
+Bookkeeping (see ``motionflows.runs``): ``config.json``, ``standardizer.json``,
+``metrics.jsonl`` (loss, grad_norm, lr, steps_per_s, frames_per_s, skipped; val_nll in
+nats/frame in metres and val_bits in bits/frame standardised), ``loss.png``, orbax
+checkpoints (``motionflows.checkpoints``: latest N plus best by validation), a progress
+bar with ETA on stderr. Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and
+returns; ``resume=True`` continues from the latest checkpoint.
+
+Every experiment module gets its command line from :func:`experiment_main`::
+
+    if __name__ == "__main__":
+        import sys
+        from motionflows.training import experiment_main
+        sys.exit(experiment_main(sys.modules[__name__]))
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import inspect
+import json
+import math
+import signal
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from motionflows import config as cfg
+from motionflows import runs
+from motionflows.checkpoints import Checkpointer
+from motionflows.errors import RunError
+from motionflows.evaluation import likelihood
+from motionflows.sharding import check_batch_size, data_mesh, replicate, shard_batch
+
+__all__ = [
+    "TrainResult",
+    "evaluate_run",
+    "experiment_main",
+    "gradient_clipping",
+    "learning_rate_schedule",
+    "load_run",
+    "load_standardizer",
+    "main",
+    "make_optimizer",
+    "make_train_step",
+    "train",
+    "validate",
+]
+
+warnings.filterwarnings("ignore", message="Some donated buffers were not usable")
+
+
+# ---------------------------------------------------------------------------- optimiser
+
+
+def learning_rate_schedule(train: cfg.TrainConfig) -> optax.Schedule:
+    """Linear warm-up from 0 over ``warmup_steps``, then constant or cosine decay to
+    ``lr * min_lr_ratio`` at ``steps``."""
+    if train.schedule not in ("constant", "cosine"):
+        raise ValueError(f"train.schedule must be 'constant' or 'cosine', got {train.schedule!r}")
+    if train.schedule == "constant":
+        after = optax.constant_schedule(train.lr)
+    else:
+        decay = max(1, train.steps - train.warmup_steps)
+        after = optax.cosine_decay_schedule(train.lr, decay, alpha=train.min_lr_ratio)
+    if train.warmup_steps <= 0:
+        return after
+    warm = optax.linear_schedule(0.0, train.lr, train.warmup_steps)
+    return optax.join_schedules([warm, after], [train.warmup_steps])
+
+
+def gradient_clipping(train: cfg.TrainConfig) -> optax.GradientTransformation:
+    """[clip(clip_value)] -> [clip_by_global_norm(clip_norm)] (identity when both are None)."""
+    parts = []
+    if train.clip_value is not None:
+        parts.append(optax.clip(train.clip_value))
+    if train.clip_norm is not None:
+        parts.append(optax.clip_by_global_norm(train.clip_norm))
+    return optax.chain(*parts) if parts else optax.identity()
+
+
+def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
+    """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw."""
+    parts = [gradient_clipping(train)]
+    lr = learning_rate_schedule(train)
+    if train.optimizer == "adam":
+        parts.append(optax.adam(lr, b1=train.b1, b2=train.b2, eps=train.eps))
+    elif train.optimizer == "adamw":
+        parts.append(
+            optax.adamw(lr, b1=train.b1, b2=train.b2, eps=train.eps,
+                        weight_decay=train.weight_decay)
+        )
+    else:
+        raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {train.optimizer!r}")
+    return optax.chain(*parts)
+
+
+def init_guard() -> dict[str, jax.Array]:
+    """Non-finite guard counters: current run of bad steps, its maximum, total skipped."""
+    z = jnp.zeros((), jnp.int32)
+    return {"consecutive": z, "peak": z, "skipped": z}
+
+
+def make_train_step(module: Any, graphdef: Any, optimizer: optax.GradientTransformation):
+    """The jitted step ``(params, rest, opt_state, guard, batch, key) -> (params, opt_state,
+    guard, out)``; ``params`` and ``opt_state`` are donated. ``out`` holds ``loss``,
+    ``grad_norm``, ``finite`` and the module's metrics. A non-finite loss, gradient norm or
+    update leaves params and optimiser state unchanged (``jnp.where``: no host sync)."""
+
+    def step(params, rest, opt_state, guard, batch, key):
+        def objective(p):
+            model = nnx.merge(graphdef, p, rest)
+            return module.loss(model, batch, key)
+
+        (loss, metrics), grads = jax.value_and_grad(objective, has_aux=True)(params)
+        grad_norm = optax.tree.norm(grads)
+        updates, new_opt = optimizer.update(grads, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        finite = (
+            jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(updates))
+        )
+
+        def keep(new, old):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)
+
+        consecutive = jnp.where(finite, 0, guard["consecutive"] + 1).astype(jnp.int32)
+        guard = {
+            "consecutive": consecutive,
+            "peak": jnp.maximum(guard["peak"], consecutive),
+            "skipped": guard["skipped"] + (~finite).astype(jnp.int32),
+        }
+        out = {"loss": loss, "grad_norm": grad_norm, "finite": finite, **dict(metrics)}
+        return keep(new_params, params), keep(new_opt, opt_state), guard, out
+
+    return jax.jit(step, donate_argnums=(0, 2))
+
+
+# ------------------------------------------------------------------------------- helpers
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What :func:`train` returns. ``status``: finished | fitted | interrupted | nonfinite."""
+
+    model: Any
+    run_dir: Path
+    step: int
+    status: str
+    best_val_nll: float | None = None
+    last_metrics: dict = dataclasses.field(default_factory=dict)
+
+
+def _keys(seed: int) -> dict[str, jax.Array]:
+    base = jax.random.key(seed)
+    names = ("build", "init", "train", "eval")
+    return dict(zip(names, jax.random.split(base, len(names)), strict=True))
+
+
+def _window(batch: dict) -> int:
+    return int(np.shape(batch["pose"])[1])
+
+
+def _main_key(lls: dict) -> str:
+    return "window" if "window" in lls else next(iter(lls))
+
+
+def validate(module: Any, config: Any, model: Any, dataset: Any, *, key: jax.Array,
+             evaluate_fn: Any = None, split: str = "val") -> dict[str, float]:
+    """Validation NLL on ``train.eval_batches`` batches of ``split``: ``val_nll`` (nats/frame,
+    metres) and ``val_bits`` (bits/frame, standardised) of the ``window`` scope (or the
+    first scope), plus ``val_<scope>_nll`` for every scope."""
+    tc = config.train
+    bs = tc.val_batch_size or tc.batch_size
+    fn = evaluate_fn or jax.jit(module.evaluate)
+    lls: dict[str, list] = {}
+    window = None
+    for i in range(max(1, tc.eval_batches)):
+        batch = dataset.batch(split, bs, seed=0, index=i)
+        window = _window(batch)
+        res = fn(model, batch, jax.random.fold_in(key, i))
+        for k, v in res.items():
+            lls.setdefault(k, []).append(np.asarray(v, np.float64))
+    ldpf = float(dataset.standardizer.log_det_per_frame)
+    out = {}
+    for k, parts in lls.items():
+        ll = np.concatenate(parts)
+        n = likelihood.scored_frames(getattr(module, "SCOPES", {}), k, window, config)
+        out[f"val_{k}_nll"] = float(np.mean(likelihood.nats_per_frame_metres(ll, n, ldpf)))
+        if k == _main_key(lls):
+            out["val_nll"] = out[f"val_{k}_nll"]
+            out["val_bits"] = float(np.mean(likelihood.bits_per_frame_standardized(ll, n)))
+    return out
+
+
+class _StopFlag:
+    """SIGINT handler: the first Ctrl-C asks the loop to stop after the current step."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.getsignal(signal.SIGINT)
+
+            def handler(signum, frame):
+                if self.requested:  # a second Ctrl-C: stop now
+                    raise KeyboardInterrupt
+                self.requested = True
+
+            signal.signal(signal.SIGINT, handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+def _standardizer_dict(dataset: Any) -> dict:
+    std = dataset.standardizer
+    if hasattr(std, "to_dict"):
+        return std.to_dict()
+    return {k: np.asarray(getattr(std, k)).tolist()
+            for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+
+
+def _write_json(path: Path, payload: Any) -> None:
+    path.write_text(json.dumps(payload, indent=2) + "\n")
+
+
+def _primary() -> bool:
+    return jax.process_index() == 0
+
+
+def _scalar(x: Any) -> Any:
+    x = np.asarray(x)
+    if x.size != 1:
+        return None
+    v = x.item()
+    if isinstance(v, float) and not math.isfinite(v):
+        return None  # JSON has no NaN: a non-finite value is logged as null
+    return v
+
+
+# ---------------------------------------------------------------------------------- train
+
+
+def train(
+    module: Any,
+    config: Any,
+    *,
+    run_dir: str | Path,
+    preset: str | None = None,
+    resume: bool = False,
+    dataset: Any = None,
+    progress: bool = True,
+    use_fit: bool = True,
+    mesh: Any = None,
+    on_step: Any = None,
+) -> TrainResult:
+    """Train (or fit) ``module``'s model with ``config`` into ``run_dir``.
+
+    ``resume=True`` continues from the latest checkpoint of ``run_dir`` (same loss curve as
+    an uninterrupted run). ``dataset`` defaults to ``config.data.load()``. ``mesh`` defaults
+    to a ``data`` mesh over all devices. ``on_step(step, out)`` is called after each step
+    is dispatched (testing hook; ``out`` holds device arrays).
+    """
+    module = runs.resolve_experiment(module)
+    run_dir = Path(run_dir)
+    tc = config.train
+    ckdir = run_dir / "checkpoints"
+    if not resume and ckdir.is_dir() and any(ckdir.glob("*/*")):
+        raise RunError(
+            f"{run_dir} already holds checkpoints: pass --resume to continue it, or choose "
+            "another --run-name"
+        )
+    if resume and not (run_dir / "config.json").is_file():
+        raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
+    for sub in ("checkpoints", "samples"):
+        (run_dir / sub).mkdir(parents=True, exist_ok=True)
+    dataset = config.data.load() if dataset is None else dataset
+    if _primary():
+        cfg.save_config(run_dir / "config.json", experiment=module.NAME, preset=preset,
+                        config=config)
+        _write_json(run_dir / "standardizer.json", _standardizer_dict(dataset))
+    keys = _keys(tc.seed)
+    model = module.build(config, key=keys["build"])
+    ckpt = Checkpointer(ckdir, keep=tc.keep_checkpoints)
+    eval_fn = jax.jit(module.evaluate)
+    base_meta = {"seed": tc.seed, "rng": np.asarray(jax.random.key_data(keys["train"])).tolist()}
+    try:
+        if use_fit and hasattr(module, "fit"):
+            return _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta)
+        return _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys,
+                           base_meta, resume=resume, progress=progress, mesh=mesh,
+                           on_step=on_step)
+    finally:
+        ckpt.close()
+
+
+def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta):
+    t0 = time.perf_counter()
+    kwargs = {"config": config} if "config" in inspect.signature(module.fit).parameters else {}
+    model = module.fit(model, dataset, **kwargs)
+    seconds = time.perf_counter() - t0
+    val = validate(module, config, model, dataset, key=keys["eval"], evaluate_fn=eval_fn)
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    meta = {**base_meta, "step": 0, "data_index": 0, "fit": True, **val}
+    state = {"params": params, "rest": rest}
+    ckpt.save(0, state, meta, which="latest")
+    ckpt.save(0, state, meta, which="best")
+    row = {"step": 0, "fit": "closed-form", "fit_seconds": seconds, **val, "status": "fitted"}
+    runs.truncate_metrics(run_dir, -1)
+    runs.append_metrics(run_dir, row)
+    print(f"fitted {module.NAME} in closed form in {seconds:.1f} s: val NLL "
+          f"{val['val_nll']:.3f} nats/frame (metres)", file=sys.stderr)
+    return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
+
+
+def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, *,
+                resume, progress, mesh, on_step):
+    tc = config.train
+    mesh = data_mesh() if mesh is None else mesh
+    check_batch_size(tc.batch_size, mesh)
+    optimizer = make_optimizer(tc)
+    schedule = learning_rate_schedule(tc)
+    start, best = 0, None
+    guard = init_guard()
+    if resume and ckpt.latest_step() is not None:
+        graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+        templates = {"params": params, "rest": rest, "opt": optimizer.init(params)}
+        state, meta = ckpt.restore(templates, which="latest")
+        params, rest, opt_state = state["params"], state["rest"], state["opt"]
+        start = int(meta["step"])
+        best = meta.get("best_val_nll")
+        guard = {**init_guard(), "skipped": jnp.asarray(meta.get("skipped", 0), jnp.int32)}
+        if _primary():
+            runs.truncate_metrics(run_dir, start)
+        print(f"resumed {run_dir} at step {start}", file=sys.stderr)
+    else:
+        if resume:
+            print(f"no checkpoint in {run_dir}: starting from step 0", file=sys.stderr)
+        if _primary():
+            runs.truncate_metrics(run_dir, -1)
+        if hasattr(module, "initialize"):
+            first = dataset.batch("train", tc.batch_size, seed=tc.seed, index=0)
+            model = module.initialize(model, first, key=keys["init"])
+        graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+        opt_state = optimizer.init(params)
+    params, rest, opt_state = replicate((params, rest, opt_state), mesh)
+    step_fn = make_train_step(module, graphdef, optimizer)
+
+    def current_model():
+        return nnx.merge(graphdef, params, rest)
+
+    def save(step, which="latest", extra=None):
+        meta = {**base_meta, "step": step, "data_index": step, "best_val_nll": best,
+                "skipped": int(guard["skipped"]), **(extra or {})}
+        ckpt.save(step, {"params": params, "rest": rest, "opt": opt_state}, meta, which=which)
+
+    bar = runs.Progress(tc.steps, start, enabled=progress)
+    pending: list = []
+    t_log, step_log = time.perf_counter(), start
+    t_plot = t_log
+    status, last_row, step = "finished", {}, start
+    with _StopFlag() as stop:
+        for step in range(start, tc.steps):
+            if stop.requested:
+                status = "interrupted"
+                break
+            batch = dataset.batch("train", tc.batch_size, seed=tc.seed, index=step)
+            frames = int(np.prod(np.shape(batch["pose"])[:2]))
+            batch = shard_batch(batch, mesh)
+            params, opt_state, guard, out = step_fn(
+                params, rest, opt_state, guard, batch, jax.random.fold_in(keys["train"], step)
+            )
+            pending.append(out)
+            if on_step is not None:
+                on_step(step, out)
+            done = step + 1
+            if done % tc.log_every == 0 or done == tc.steps:
+                outs = jax.device_get(pending)
+                now = time.perf_counter()
+                rate = (done - step_log) / max(now - t_log, 1e-9)
+                t_log, step_log, pending = now, done, []
+                ok = [o for o in outs if bool(o["finite"])]
+                row = {"step": done}
+                for k in outs[-1]:
+                    if k == "finite":
+                        continue
+                    vals = [_scalar(o[k]) for o in ok]
+                    vals = [v for v in vals if isinstance(v, int | float)]
+                    row[k] = float(np.mean(vals)) if vals else None
+                row.update({
+                    "lr": float(schedule(done - 1)), "steps_per_s": rate,
+                    "frames_per_s": rate * frames, "skipped": int(guard["skipped"]),
+                    "nonfinite_run": int(guard["consecutive"]),
+                })
+                last_row = row
+                if _primary():
+                    runs.append_metrics(run_dir, row)
+                loss_txt = f"{row['loss']:.4f}" if row["loss"] is not None else "nan"
+                bar.update(done, f"loss {loss_txt} {rate:.2f} it/s")
+                if int(guard["peak"]) >= tc.max_nonfinite:
+                    status = "nonfinite"
+                    step = done
+                    break
+            if done % tc.eval_every == 0 or done == tc.steps:
+                val = validate(module, config, current_model(), dataset, key=keys["eval"],
+                               evaluate_fn=eval_fn)
+                if _primary():
+                    runs.append_metrics(run_dir, {"step": done, **val})
+                    if time.perf_counter() - t_plot > 60.0:  # plotting costs ~1 s
+                        runs.plot_losses(run_dir)
+                        t_plot = time.perf_counter()
+                if best is None or val["val_nll"] < best:
+                    best = val["val_nll"]
+                    save(done, "best", val)
+            if done % tc.checkpoint_every == 0 or done == tc.steps:
+                save(done)
+        else:
+            step = tc.steps
+    bar.close()
+    if status == "interrupted":
+        save(step)
+        print(f"\ninterrupted at step {step}: checkpoint saved in {run_dir / 'checkpoints'}; "
+              f"continue with --resume", file=sys.stderr)
+    elif status == "nonfinite":
+        save(step)
+        print(f"stopped at step {step}: {int(guard['peak'])} consecutive steps had a NaN/inf "
+              f"loss or gradient (train.max_nonfinite={tc.max_nonfinite}); they were skipped "
+              f"({int(guard['skipped'])} in all) and the last good state is checkpointed. "
+              "Try a lower train.lr, train.clip_norm, or check the data.", file=sys.stderr)
+    if _primary():
+        runs.append_metrics(run_dir, {"step": step, "status": status})
+        runs.plot_losses(run_dir)
+    return TrainResult(current_model(), run_dir, step, status, best, last_row)
+
+
+# ---------------------------------------------------------------------------- load / eval
+
+
+class _Standardizer:
+    """Fallback standardiser read from ``standardizer.json`` (the data layer's own class is
+    used when it can read the file)."""
+
+    def __init__(self, d: dict):
+        self.pose_mean = np.asarray(d["pose_mean"], np.float32)
+        self.pose_std = np.asarray(d["pose_std"], np.float32)
+        self.control_mean = np.asarray(d["control_mean"], np.float32)
+        self.control_std = np.asarray(d["control_std"], np.float32)
+
+    @property
+    def log_det_per_frame(self) -> float:
+        return float(-np.sum(np.log(self.pose_std)))
+
+    def normalize_pose(self, x):
+        return (np.asarray(x) - self.pose_mean) / self.pose_std
+
+    def denormalize_pose(self, x):
+        return np.asarray(x) * self.pose_std + self.pose_mean
+
+    def normalize_control(self, c):
+        return (np.asarray(c) - self.control_mean) / self.control_std
+
+    def denormalize_control(self, c):
+        return np.asarray(c) * self.control_std + self.control_mean
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k).tolist()
+                for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+
+
+def load_standardizer(run_dir: str | Path):
+    """The run's standardiser from ``standardizer.json`` (no dataset needed)."""
+    d = json.loads((Path(run_dir) / "standardizer.json").read_text())
+    try:
+        from motionflows.data import Standardizer
+
+        return Standardizer.from_dict(d)
+    except (ImportError, AttributeError, KeyError, TypeError):
+        return _Standardizer(d)
+
+
+def load_run(run_dir: str | Path, *, checkpoint: str = "best", dataset: Any = None,
+             load_data: bool = True):
+    """Rebuild ``(module, config, model, dataset)`` from a run directory alone.
+
+    ``checkpoint``: "best" (falls back to "latest" if no best exists) or "latest".
+    ``dataset``: reuse an already loaded dataset; ``load_data=False`` returns None.
+    """
+    run_dir = runs.check_run_dir(run_dir)
+    payload = json.loads((run_dir / "config.json").read_text())
+    module = runs.resolve_experiment(payload["experiment"])
+    config = cfg.from_dict(module.Config, payload["config"])
+    model = module.build(config, key=_keys(config.train.seed)["build"])
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    ckpt = Checkpointer(run_dir / "checkpoints", keep=config.train.keep_checkpoints)
+    try:
+        which = checkpoint
+        if which == "best" and ckpt.latest_step("best") is None:
+            which = "latest"
+        if ckpt.latest_step(which) is None:
+            raise RunError(f"{run_dir} has no checkpoint yet (train it first)")
+        state, _ = ckpt.restore({"params": params, "rest": rest}, which=which)
+    finally:
+        ckpt.close()
+    model = nnx.merge(graphdef, state["params"], state["rest"])
+    if dataset is None and load_data:
+        dataset = config.data.load()
+    return module, config, model, dataset
+
+
+def _split_windows(dataset: Any, split: str):
+    """Standardised (pose, control) of every complete window of ``split`` (windows padded
+    past the end of a short take, ``WindowSet.valid`` False somewhere, are left out)."""
+    ws = dataset.split(split) if hasattr(dataset, "split") else getattr(dataset, split)
+    if hasattr(dataset, "arrays"):
+        arr = dataset.arrays(split)
+        pose, control = np.asarray(arr["pose"]), np.asarray(arr["control"])
+    else:
+        std = dataset.standardizer
+        pose = np.asarray(std.normalize_pose(np.asarray(ws.pose)), np.float32)
+        control = np.asarray(std.normalize_control(np.asarray(ws.control)), np.float32)
+    valid = getattr(ws, "valid", None)
+    if valid is not None:
+        keep = np.asarray(valid).reshape(len(pose), -1).all(axis=1)
+        pose, control = pose[keep], control[keep]
+    if len(pose) == 0:
+        raise RunError(f"the {split} split has no complete windows to evaluate")
+    return pose.astype(np.float32), control.astype(np.float32)
+
+
+def evaluate_run(run_dir: str | Path, split: str = "test", *, checkpoint: str = "best",
+                 dataset: Any = None, batch_size: int | None = None,
+                 print_table: bool = True) -> list[dict]:
+    """Score every window of ``split``; write ``eval_<split>.json`` and print the table."""
+    module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
+    pose, control = _split_windows(dataset, split)
+    bs = batch_size or config.train.val_batch_size or config.train.batch_size
+    lls = likelihood.evaluate_windows(module, model, pose, control, batch_size=bs,
+                                      key=_keys(config.train.seed)["eval"])
+    window = pose.shape[1]
+    scopes = getattr(module, "SCOPES", {})
+    frames = {k: likelihood.scored_frames(scopes, k, window, config) for k in lls}
+    ldpf = float(dataset.standardizer.log_det_per_frame)
+    rows = likelihood.likelihood_rows(lls, frames, ldpf, scopes=scopes)
+    likelihood.write_eval(Path(run_dir) / f"eval_{split}.json", rows, split=split,
+                          experiment=module.NAME, window=window, checkpoint=checkpoint,
+                          log_det_per_frame=ldpf)
+    if print_table:
+        print(likelihood.format_table(
+            rows, title=f"{module.NAME} — {split} split, {pose.shape[0]} windows of {window} "
+                        f"frames ({Path(run_dir)})"))
+    return rows
+
+
+# ------------------------------------------------------------------------ command line
+
+
+def add_train_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags shared by ``python -m experiments.<name>`` and ``motionflows train``."""
+    parser.add_argument("--preset", default="quick", help="named config (default: quick)")
+    parser.add_argument("--data", default=None,
+                        help="synthetic | bandai | bandai:DIR | bvh:DIR | DIR")
+    parser.add_argument("--steps", type=int, default=None, help="training steps (train.steps)")
+    parser.add_argument("--set", dest="overrides", action="append", nargs="+", default=[],
+                        metavar="KEY=VALUE", help="config override, e.g. train.lr=1e-3")
+    parser.add_argument("--run-name", default=None, help="run directory name")
+    parser.add_argument("--runs-dir", default="runs", help="root of run directories")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue --run-name (or the latest run) from its checkpoint")
+    parser.add_argument("--no-eval", action="store_true", help="skip the final test table")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, Path]:
+    """(config, preset, run_dir) from parsed train flags (resume reads config.json)."""
+    overrides = [item for group in args.overrides for item in group]
+    if args.resume:
+        run_dir = (Path(args.runs_dir) / module.NAME / args.run_name if args.run_name
+                   else runs.latest_run(args.runs_dir, module.NAME))
+        if run_dir is None:
+            raise RunError(f"no run of {module.NAME} under {args.runs_dir}/ to resume")
+        run_dir = runs.check_run_dir(run_dir)
+        _, preset, config = cfg.load_config(run_dir / "config.json", module.Config)
+    else:
+        if args.preset not in module.PRESETS:
+            raise RunError(f"unknown preset {args.preset!r} for {module.NAME}; "
+                           f"available: {sorted(module.PRESETS)}")
+        preset, config = args.preset, module.PRESETS[args.preset]
+        run_dir = Path(args.runs_dir) / module.NAME / (args.run_name or runs.new_run_name(preset))
+    if args.data is not None:
+        config = dataclasses.replace(config,
+                                     data=dataclasses.replace(config.data,
+                                                              **runs.parse_data(args.data)))
+    if args.steps is not None:
+        if args.steps < 0:
+            raise RunError(f"--steps must be >= 0, got {args.steps}")
+        config = dataclasses.replace(config,
+                                     train=dataclasses.replace(config.train, steps=args.steps))
+    try:
+        config = cfg.apply_overrides(config, overrides)
+    except ValueError as err:
+        raise RunError(str(err)) from None
+    return config, preset, run_dir
+
+
+def run_train(module: Any, args: argparse.Namespace) -> int:
+    """Train from parsed flags, then print the test table; the exit code."""
+    module = runs.resolve_experiment(module)
+    config, preset, run_dir = configure(module, args)
+    print(f"run directory: {run_dir}", file=sys.stderr)
+    dataset = config.data.load()
+    result = train(module, config, run_dir=run_dir, preset=preset, resume=args.resume,
+                   dataset=dataset, progress=not args.no_progress)
+    if result.status in ("interrupted", "nonfinite"):
+        return 130 if result.status == "interrupted" else 1
+    if not args.no_eval and _primary():
+        evaluate_run(run_dir, "test", dataset=dataset)
+    print(f"done: {run_dir}", file=sys.stderr)
+    return 0
+
+
+def report_errors(fn, *args) -> int:
+    """Run ``fn(*args)``; user errors become one line on stderr and exit code 2."""
+    from motionflows.errors import MotionDataError
+
+    try:
+        return fn(*args)
+    except (RunError, MotionDataError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except ValueError as err:  # bad config values and shapes, with the fix in the message
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def experiment_main(module: Any, argv: list[str] | None = None) -> int:
+    """Command line of ``python -m experiments.<name>``; returns the exit code."""
+    name = getattr(module, "NAME", "experiment")
+    parser = argparse.ArgumentParser(prog=f"python -m experiments.{name}",
+                                     description=(module.__doc__ or "").strip().split("\n")[0])
+    add_train_arguments(parser)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    with contextlib.suppress(KeyboardInterrupt):
+        return report_errors(run_train, module, args)
+    return 130
+
+
+main = experiment_main

@@ -1,0 +1,488 @@
+"""Generic, registry-driven checks of every bijector, plus the specific ones.
+
+Every entry of ``REGISTRY`` builds a bijector with non-trivial random parameters (every
+``nnx.Param`` is perturbed, so zero-initialised conditioner heads and ActNorm are not the
+identity) and goes through the same checks: round trips both ways, log-dets against
+``jax.jacfwd`` + ``slogdet`` of the flattened (T * D) event in both directions, forward
+log-det = -inverse log-det, jit / vmap = eager, batch shapes (), (B,), (B1, B2), the context
+changing the output when the conditioner uses it, and clear ``ValueError`` on bad shapes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from motionflows import bijectors as bj
+from motionflows.nets import MLP, coupling_mlp
+
+T, D, C = 4, 5, 2  # odd D exercises the floor/ceil halves
+K_STEPS = 3
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def perturb(module, key, scale=0.3):
+    """Add N(0, scale^2) noise to every nnx.Param of ``module`` (in place) and return it."""
+    state = nnx.state(module, nnx.Param)
+    leaves, treedef = jax.tree.flatten(state)
+    keys = jax.random.split(key, len(leaves))
+    new = [leaf + scale * jax.random.normal(k, leaf.shape) for leaf, k in zip(leaves, keys)]
+    nnx.update(module, jax.tree.unflatten(treedef, new))
+    return module
+
+
+class ShiftConv(nnx.Module):
+    """A causal two-tap convolution over time: a *sequence* conditioner (sees x_{t-1})."""
+
+    def __init__(self, fin, fout, context_features, *, rngs):
+        self.w0 = nnx.Param(0.5 * jax.random.normal(rngs.params(), (fin, 8)))
+        self.w1 = nnx.Param(0.5 * jax.random.normal(rngs.params(), (fin, 8)))
+        self.v = nnx.Param(0.5 * jax.random.normal(rngs.params(), (context_features, 8)))
+        self.out = nnx.Param(jnp.zeros((8, fout)))  # zero head, perturbed by the registry
+
+    def __call__(self, x, context):
+        prev = jnp.concatenate([jnp.zeros_like(x[..., :1, :]), x[..., :-1, :]], axis=-2)
+        h = x @ self.w0[...] + prev @ self.w1[...]
+        if context is not None:
+            h = h + context @ self.v[...]
+        return jnp.tanh(h) @ self.out[...]
+
+
+def _glow_step(rngs, *, context_features=C):
+    """data -> latent: ActNorm, InvertibleLinear, AffineCoupling (per-frame MLP)."""
+    cond = coupling_mlp(D, context_features=context_features, hidden=8, rngs=rngs)
+    return bj.Chain.from_data_to_latent(
+        [bj.ActNorm(D), bj.InvertibleLinear(D, rngs=rngs), bj.AffineCoupling(D, cond)]
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    build: Callable[[nnx.Rngs], bj.Bijector]
+    uses_context: bool = False
+    bad_data: tuple = ((T, D + 1), (D,))  # shapes inverse() must reject
+    bad_latent: tuple = ((T, D + 1), (D,))  # shapes forward() must reject
+
+
+REGISTRY: dict[str, Case] = {
+    "actnorm": Case(lambda r: bj.ActNorm(D)),
+    "invertible_linear": Case(lambda r: bj.InvertibleLinear(D, rngs=r)),
+    "dense_linear": Case(lambda r: bj.DenseLinear(D, rngs=r)),
+    "permute": Case(lambda r: bj.Permute.random(D, key=r.params())),
+    "reverse": Case(lambda r: bj.Reverse(D)),
+    "affine_coupling_mlp": Case(
+        lambda r: bj.AffineCoupling(D, coupling_mlp(D, hidden=8, rngs=r))
+    ),
+    "affine_coupling_mlp_context": Case(
+        lambda r: bj.AffineCoupling(D, coupling_mlp(D, context_features=C, hidden=8, rngs=r)),
+        uses_context=True,
+    ),
+    "affine_coupling_sequence_context": Case(
+        lambda r: bj.AffineCoupling(D, ShiftConv(D // 2, 2 * (D - D // 2), C, rngs=r)),
+        uses_context=True,
+    ),
+    "additive_coupling_context": Case(
+        lambda r: bj.AdditiveCoupling(
+            D, coupling_mlp(D, context_features=C, hidden=8, additive=True, rngs=r)
+        ),
+        uses_context=True,
+    ),
+    "chain": Case(_glow_step, uses_context=True),
+    "inverse_of_chain": Case(lambda r: bj.Inverse(_glow_step(r)), uses_context=True),
+    "scan": Case(lambda r: bj.Scan(_glow_step, K_STEPS, rngs=r), uses_context=True),
+    "squeeze": Case(
+        lambda r: bj.Squeeze(2), bad_data=((T + 1, D), (D,)), bad_latent=((T, 2 * D + 1), (D,))
+    ),
+}
+
+_BUILT: dict[str, bj.Bijector] = {}
+
+
+def built(name: str) -> bj.Bijector:
+    """The registry entry, built once with perturbed (non-identity) parameters."""
+    if name not in _BUILT:
+        rngs = nnx.Rngs(hash(name) % 1000)
+        _BUILT[name] = perturb(REGISTRY[name].build(rngs), jax.random.key(7))
+    return _BUILT[name]
+
+
+def data(name, batch, seed=0):
+    """(x, context) for the entry: x (*batch, T, D), context (*batch, T, C) or None."""
+    kx, kc = jax.random.split(jax.random.key(seed))
+    x = 1.5 * jax.random.normal(kx, (*batch, T, D)) + 0.3
+    c = jax.random.normal(kc, (*batch, T, C)) if REGISTRY[name].uses_context else None
+    return x, c
+
+
+def latent_shape(name, batch):
+    bij = built(name)
+    x, c = data(name, batch)
+    return jax.eval_shape(lambda: bij.inverse(x, context=c)).shape
+
+
+def close(a, b, tol=2e-4):
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=tol, atol=tol)
+
+
+NAMES = sorted(REGISTRY)
+CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
+
+
+# ----------------------------------------------------------------------------- generic
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_round_trip_both_ways(name):
+    bij = built(name)
+    x, c = data(name, (3,))
+    z, _ = bij.inverse_and_log_det(x, context=c)
+    assert z.dtype == jnp.float32
+    close(bij.forward(z, context=c), x)
+    z0 = jax.random.normal(jax.random.key(3), latent_shape(name, (3,)))
+    close(bij.inverse(bij.forward(z0, context=c), context=c), z0)
+    # not the identity (the registry promises non-trivial parameters), except Squeeze,
+    # whose data and latent are the same numbers in another shape
+    if name != "squeeze":
+        assert float(jnp.max(jnp.abs(z - x))) > 1e-2
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_log_det_matches_jacobian_both_directions(name):
+    bij = built(name)
+    x, c = data(name, ())
+    zshape = latent_shape(name, ())
+
+    def inv_flat(v):
+        return bij.inverse(v.reshape(T, D), context=c).reshape(-1)
+
+    def fwd_flat(v):
+        return bij.forward(v.reshape(zshape), context=c).reshape(-1)
+
+    _, ld_inv = bij.inverse_and_log_det(x, context=c)
+    sign, ref = jnp.linalg.slogdet(jax.jacfwd(inv_flat)(x.reshape(-1)))
+    assert ld_inv.shape == ()
+    assert float(sign) != 0.0
+    close(ld_inv, ref, tol=5e-4)
+
+    z = jax.random.normal(jax.random.key(5), zshape)
+    _, ld_fwd = bij.forward_and_log_det(z, context=c)
+    sign, ref = jnp.linalg.slogdet(jax.jacfwd(fwd_flat)(z.reshape(-1)))
+    assert float(sign) != 0.0
+    close(ld_fwd, ref, tol=5e-4)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_forward_log_det_is_minus_inverse_log_det(name):
+    bij = built(name)
+    x, c = data(name, (2,))
+    z, ld_inv = bij.inverse_and_log_det(x, context=c)
+    x_back, ld_fwd = bij.forward_and_log_det(z, context=c)
+    close(ld_fwd, -ld_inv)
+    close(x_back, x)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_jit_and_vmap_agree_with_eager(name):
+    bij = built(name)
+    x, c = data(name, (3,))
+    z, ld = bij.inverse_and_log_det(x, context=c)
+
+    jitted_inv = jax.jit(lambda b, x, c: b.inverse_and_log_det(x, context=c))
+    zj, ldj = jitted_inv(bij, x, c)
+    close(zj, z)
+    close(ldj, ld)
+    jitted_fwd = jax.jit(lambda b, z, c: b.forward_and_log_det(z, context=c))
+    xj, ldfj = jitted_fwd(bij, z, c)
+    close(xj, x)
+    close(ldfj, -ld)
+
+    zv, ldv = jax.vmap(lambda x, c: bij.inverse_and_log_det(x, context=c))(x, c)
+    close(zv, z)
+    close(ldv, ld)
+    xv, ldfv = jax.vmap(lambda z, c: bij.forward_and_log_det(z, context=c))(z, c)
+    close(xv, x)
+    close(ldfv, -ld)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_batch_shapes(name):
+    bij = built(name)
+    x, c = data(name, (2, 3))
+    z, ld = bij.inverse_and_log_det(x, context=c)
+    assert ld.shape == (2, 3)
+    assert z.shape[:2] == (2, 3)
+    # every batch element equals its own unbatched computation
+    for idx in [(0, 0), (1, 2)]:
+        ci = None if c is None else c[idx]
+        zi, ldi = bij.inverse_and_log_det(x[idx], context=ci)
+        assert ldi.shape == ()
+        close(zi, z[idx])
+        close(ldi, ld[idx])
+    # (B,) batch: flatten the two leading axes
+    cf = None if c is None else c.reshape(6, T, C)
+    zf, ldf = bij.inverse_and_log_det(x.reshape(6, T, D), context=cf)
+    assert ldf.shape == (6,)
+    close(zf.reshape(z.shape), z)
+    xf, ldff = bij.forward_and_log_det(zf, context=cf)
+    assert ldff.shape == (6,)
+    close(xf, x.reshape(6, T, D))
+
+
+@pytest.mark.parametrize("name", CONTEXT_NAMES)
+def test_context_changes_output(name):
+    bij = built(name)
+    x, c = data(name, (2,))
+    c2 = c + 1.0
+    z1, z2 = bij.inverse(x, context=c), bij.inverse(x, context=c2)
+    assert float(jnp.max(jnp.abs(z1 - z2))) > 1e-3
+    x1, x2 = bij.forward(z1, context=c), bij.forward(z1, context=c2)
+    assert float(jnp.max(jnp.abs(x1 - x2))) > 1e-3
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_wrong_shapes_raise_clear_value_error(name):
+    bij = built(name)
+    case = REGISTRY[name]
+    c1 = jnp.zeros((T, C)) if case.uses_context else None
+    for shape in case.bad_data:
+        c = c1 if len(shape) == 2 and shape[0] == T else None
+        with pytest.raises(ValueError, match=r"expects|needs"):
+            bij.inverse_and_log_det(jnp.zeros(shape), context=c)
+    for shape in case.bad_latent:
+        c = c1 if len(shape) == 2 and shape[0] == T else None
+        with pytest.raises(ValueError, match=r"expects|needs"):
+            bij.forward_and_log_det(jnp.zeros(shape), context=c)
+
+
+@pytest.mark.parametrize("name", CONTEXT_NAMES)
+def test_misaligned_context_raises(name):
+    bij = built(name)
+    x, _ = data(name, (2,))
+    with pytest.raises(ValueError, match="context"):
+        bij.inverse(x, context=jnp.zeros((2, T + 1, C)))
+
+
+# ----------------------------------------------------------------------------- ActNorm init
+
+
+def _channel_stats(z):
+    flat = np.asarray(z).reshape(-1, z.shape[-1])
+    return flat.mean(0), flat.std(0)
+
+
+def test_actnorm_formula():
+    an = bj.ActNorm(D)
+    an.bias[...] = jnp.arange(D, dtype=jnp.float32)
+    an.logs[...] = jnp.linspace(-0.5, 0.5, D)
+    x = jax.random.normal(jax.random.key(0), (2, T, D))
+    z, ld = an.inverse_and_log_det(x)
+    close(z, (x + an.bias[...]) * jnp.exp(an.logs[...]))
+    close(ld, jnp.full((2,), T * jnp.sum(an.logs[...])))
+
+
+def test_initialize_from_data_normalises_and_is_pure():
+    an = bj.ActNorm(D)
+    x = 3.0 * jax.random.normal(jax.random.key(1), (16, T, D)) + jnp.arange(D) - 2.0
+    new = bj.initialize_from_data(an, x)
+    assert float(jnp.max(jnp.abs(an.bias[...]))) == 0.0  # input model untouched
+    mean, std = _channel_stats(new.inverse(x))
+    np.testing.assert_allclose(mean, 0.0, atol=1e-5)
+    np.testing.assert_allclose(std, 1.0, atol=1e-4)
+    flat = np.asarray(x).reshape(-1, D)
+    close(new.bias[...], -flat.mean(0), tol=1e-5)
+    close(new.logs[...], np.log(1.0 / (flat.std(0) + 1e-6)), tol=1e-5)
+
+
+def test_initialize_in_chain_sees_previous_layers():
+    rngs = nnx.Rngs(3)
+    lin = perturb(bj.InvertibleLinear(D, rngs=rngs), jax.random.key(2), 0.5)
+    chain = bj.Chain.from_data_to_latent([bj.ActNorm(D), lin, bj.ActNorm(D)])
+    x = 2.0 * jax.random.normal(jax.random.key(4), (8, T, D)) + 5.0
+    new = bj.initialize_from_data(chain, x)
+    first, _, last = new.bijectors[2], new.bijectors[1], new.bijectors[0]
+    mean, std = _channel_stats(first.inverse(x))
+    np.testing.assert_allclose(mean, 0.0, atol=1e-5)
+    np.testing.assert_allclose(std, 1.0, atol=1e-4)
+    mean, std = _channel_stats(new.inverse(x))  # output of the last ActNorm
+    np.testing.assert_allclose(mean, 0.0, atol=1e-5)
+    np.testing.assert_allclose(std, 1.0, atol=1e-4)
+    assert float(jnp.max(jnp.abs(last.bias[...] - first.bias[...]))) > 1e-3
+
+
+def test_initialize_constant_channel_is_finite():
+    x = jax.random.normal(jax.random.key(5), (4, T, D)).at[..., 1].set(2.5)
+    new = bj.initialize_from_data(bj.ActNorm(D), x)
+    z, ld = new.inverse_and_log_det(x)
+    assert bool(jnp.all(jnp.isfinite(new.logs[...])))
+    assert bool(jnp.all(jnp.isfinite(z))) and bool(jnp.all(jnp.isfinite(ld)))
+    np.testing.assert_allclose(np.asarray(z[..., 1]), 0.0, atol=1e-4)
+
+
+def test_initialize_through_scan_and_custom_model():
+    """Scan unrolls in init mode; a user model calling bijectors is initialised as well."""
+
+    def step(rngs):  # the scan acts on squeezed (T/2, 2D) data
+        lin = bj.InvertibleLinear(2 * D, rngs=rngs)
+        return bj.Chain.from_data_to_latent([lin, bj.ActNorm(2 * D)])
+
+    scan = perturb(bj.Scan(step, K_STEPS, rngs=nnx.Rngs(0)), jax.random.key(1), 0.5)
+
+    class Model(nnx.Module):  # a user model: squeeze, then a Scan, in its own code
+        def __init__(self, flow):
+            self.flow = flow
+
+        def inverse_and_log_det(self, x, *, context=None):
+            return self.flow.inverse_and_log_det(bj.squeeze_time(x), context=context)
+
+    x = 2.0 * jax.random.normal(jax.random.key(2), (8, T, D)) - 1.0
+    model = Model(scan)
+    new = bj.initialize_from_data(model, x)
+    z = new.inverse_and_log_det(x)[0]  # lax.scan path after initialisation
+    mean, std = _channel_stats(z)
+    np.testing.assert_allclose(mean, 0.0, atol=1e-5)
+    np.testing.assert_allclose(std, 1.0, atol=1e-4)
+    # every step normalises its own input: check the unrolled chain step by step
+    h = bj.squeeze_time(x)
+    for k in reversed(range(K_STEPS)):  # data -> latent order
+        h = new.flow.step(k).inverse(h)
+        mean, std = _channel_stats(h)
+        np.testing.assert_allclose(mean, 0.0, atol=1e-5)
+        np.testing.assert_allclose(std, 1.0, atol=1e-4)
+    # same result as initialising the unrolled chain
+    chain_init = bj.initialize_from_data(scan.unrolled(), bj.squeeze_time(x))
+    close(chain_init.inverse(bj.squeeze_time(x)), z)
+    # the input model is untouched
+    old_bias = model.flow.steps.bijectors[0].bias[...]
+    close(old_bias, scan.steps.bijectors[0].bias[...], 0)
+    assert not np.allclose(old_bias, new.flow.steps.bijectors[0].bias[...])
+
+
+def test_initialize_inside_jit_is_a_clear_error():
+    class Jitted(nnx.Module):
+        def __init__(self):
+            self.an = bj.ActNorm(D)
+
+        def inverse_and_log_det(self, x, *, context=None):
+            return jax.jit(lambda m, x: m.inverse_and_log_det(x))(self.an, x)
+
+    with pytest.raises(ValueError, match="eagerly"):
+        bj.initialize_from_data(Jitted(), jnp.ones((2, T, D)))
+
+
+# ----------------------------------------------------------------------------- Scan
+
+
+def test_scan_equals_chain_values_log_dets_and_grads():
+    scan = built("scan")
+    chain = scan.unrolled()
+    assert len(chain) == K_STEPS
+    x, c = data("scan", (2,))
+    z_s, ld_s = scan.inverse_and_log_det(x, context=c)
+    z_c, ld_c = chain.inverse_and_log_det(x, context=c)
+    close(z_s, z_c, 1e-5)
+    close(ld_s, ld_c, 1e-5)
+    x_s, lf_s = scan.forward_and_log_det(z_s, context=c)
+    x_c, lf_c = chain.forward_and_log_det(z_s, context=c)
+    close(x_s, x_c, 1e-5)
+    close(lf_s, lf_c, 1e-5)
+
+    def nll(m):
+        z, ld = m.inverse_and_log_det(x, context=c)
+        return jnp.mean(0.5 * jnp.sum(z**2, axis=(-2, -1)) - ld)
+
+    g_scan = nnx.state(jax.grad(nll)(scan), nnx.Param)
+    g_chain = nnx.state(jax.grad(nll)(chain), nnx.Param)
+    for k in range(K_STEPS):
+        gk = jax.tree.map(lambda a, k=k: a[k], g_scan["steps"])
+        for a, b in zip(jax.tree.leaves(gk), jax.tree.leaves(g_chain["bijectors"][k])):
+            close(a, b, 1e-4)
+
+
+def test_scan_from_list_and_stacked_module():
+    steps = [perturb(_glow_step(nnx.Rngs(i)), jax.random.key(i)) for i in range(2)]
+    scan = bj.Scan(steps)
+    chain = bj.Chain(steps)
+    x, c = data("scan", (2,))
+    close(scan.inverse(x, context=c), chain.inverse(x, context=c), 1e-5)
+    again = bj.Scan(scan.steps, 2)
+    close(again.forward(x, context=c), chain.forward(x, context=c), 1e-5)
+    with pytest.raises(ValueError, match="steps"):
+        bj.Scan(scan.steps, 3)
+
+
+# ----------------------------------------------------------------------------- specifics
+
+
+def test_invertible_linear_structure():
+    lin = bj.InvertibleLinear(D, rngs=nnx.Rngs(0))
+    w = lin.weight()
+    close(w @ w.T, jnp.eye(D), 1e-5)  # starts orthogonal
+    close(jnp.sum(lin.log_s[...]), 0.0, 1e-5)
+    params = nnx.state(lin, nnx.Param)
+    assert set(params.keys()) == {"lower", "upper", "log_s"}  # P and sign_s are not trained
+    fixed = nnx.state(lin, bj.Fixed)
+    assert set(fixed.keys()) == {"P", "sign_s"}
+    # the masked entries do not matter: W depends only on the strict triangles
+    lin2 = perturb(bj.InvertibleLinear(D, rngs=nnx.Rngs(0)), jax.random.key(1))
+    w2 = lin2.weight()
+    lin2.lower[...] = lin2.lower[...] + jnp.triu(jnp.ones((D, D)))
+    lin2.upper[...] = lin2.upper[...] + jnp.tril(jnp.ones((D, D)))
+    close(lin2.weight(), w2, 1e-6)
+    x = jax.random.normal(jax.random.key(2), (T, D))
+    close(lin2.inverse(x), x @ w2.T, 1e-5)
+    # gradients never reach the fixed parts
+    g = jax.grad(lambda m: jnp.sum(m.inverse(x) ** 2))(lin2)
+    assert float(jnp.max(jnp.abs(g.P[...]))) == 0.0
+
+
+def test_fresh_coupling_is_linear_and_affine_params():
+    coup = bj.AffineCoupling(D, coupling_mlp(D, hidden=8, rngs=nnx.Rngs(0)))
+    x = jax.random.normal(jax.random.key(0), (2, T, D))
+    z, ld = coup.inverse_and_log_det(x)
+    s = jax.nn.sigmoid(2.0) + 1e-6
+    close(z[..., : D // 2], x[..., : D // 2], 1e-6)
+    close(z[..., D // 2 :], x[..., D // 2 :] * s, 1e-6)
+    close(ld, jnp.full((2,), T * (D - D // 2) * np.log(s)), 1e-5)
+    h = jnp.array([[1.0, -3.0, 0.5, 0.0]])
+    shift, scale = bj.affine_params(h)
+    close(shift, [[1.0, 0.5]], 1e-7)
+    close(scale, jax.nn.sigmoid(jnp.array([[-1.0, 2.0]])) + 1e-6, 1e-7)
+    assert bj.coupling_sizes(5) == (2, 3)
+
+
+def test_coupling_rejects_wrong_conditioner_output():
+    bad = MLP(D // 2, 3, hidden=4, rngs=nnx.Rngs(0))  # needs 2 * 3 = 6 outputs
+    coup = bj.AffineCoupling(D, bad)
+    with pytest.raises(ValueError, match="conditioner must return"):
+        coup.inverse(jnp.zeros((T, D)))
+
+
+def test_squeeze_interleave_order_and_odd_length():
+    x = jnp.arange(2 * T * D, dtype=jnp.float32).reshape(2, T, D)
+    z = bj.Squeeze().inverse(x)
+    assert z.shape == (2, T // 2, 2 * D)
+    for t in range(T // 2):
+        close(z[:, t], jnp.concatenate([x[:, 2 * t], x[:, 2 * t + 1]], -1), 0)
+    with pytest.raises(ValueError, match="divisible"):
+        bj.squeeze_time(jnp.zeros((3, D)))
+
+
+def test_split_merge_odd_channels():
+    split = bj.Split(D)
+    x = jax.random.normal(jax.random.key(0), (2, T, D))
+    kept, factored = split.split(x)
+    assert kept.shape == (2, T, 3) and factored.shape == (2, T, 2)
+    close(kept, x[..., :3], 0)
+    close(split.merge(kept, factored), x, 0)
+    with pytest.raises(ValueError, match="expects"):
+        split.split(jnp.zeros((T, D + 1)))
+    with pytest.raises(ValueError, match="expects"):
+        split.merge(factored, kept)

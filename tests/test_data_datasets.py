@@ -1,0 +1,149 @@
+"""Datasets: splits, windows, standardiser (log-Jacobian vs autodiff), cache, batches."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from motionflows.data import MotionDataError, Standardizer, load_dataset
+from motionflows.data.controls import PRESETS, load_control, preset
+from motionflows.data.features import Clip
+from motionflows.data.pipeline import make_windows
+
+
+@pytest.fixture(scope="module")
+def ds(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    return load_dataset("synthetic", n_clips=12, seconds=6.0, seed=1, window=40, hop=10,
+                        cache_dir=cache)
+
+
+def test_shapes_info_and_disjoint_splits(ds):
+    for split in ("train", "val", "test"):
+        ws = ds.split(split)
+        assert ws.pose.shape[1:] == (40, 63) and ws.control.shape[1:] == (40, 3)
+        assert ws.pose.dtype == np.float32 and len(ws) == ws.take.shape[0] > 0
+    takes = [set(ds.split(s).take) for s in ("train", "val", "test")]
+    assert not (takes[0] & takes[1]) and not (takes[0] & takes[2]) and not (takes[1] & takes[2])
+    assert ds.info["takes"] == {"train": 10, "val": 1, "test": 1}
+    assert ds.info["frames_used"]["val"] == ds.info["frames_total"]["val"]
+    # mirror augmentation doubles the training windows
+    assert len(ds.train) == 2 * len(load_dataset(
+        "synthetic", n_clips=12, seconds=6.0, seed=1, window=40, hop=10, mirror=False,
+        cache=False).train)
+    with pytest.raises(ValueError, match="valid: train, val, test"):
+        ds.split("nope")
+
+
+def test_standardizer_log_jacobian_matches_autodiff(ds):
+    st = ds.standardizer
+    assert st.pose_std.shape == (63,) and (st.pose_std >= 1e-3).all()
+    x = jnp.asarray(ds.train.pose[0, 0])
+    jac = jax.jacfwd(lambda v: st.normalize_pose(v))(x)
+    _, logdet = jnp.linalg.slogdet(jac)
+    assert float(logdet) == pytest.approx(st.log_det_per_frame, rel=1e-5)
+    np.testing.assert_allclose(st.denormalize_pose(st.normalize_pose(ds.val.pose)),
+                               ds.val.pose, atol=1e-5)
+    back = Standardizer.from_dict(st.to_dict())
+    np.testing.assert_array_equal(back.pose_std, st.pose_std)
+    # fitted on the (augmented) training windows: standardised training data are N(0, 1)
+    z = st.normalize_pose(ds.train.pose).reshape(-1, 63)
+    np.testing.assert_allclose(z.mean(0), 0, atol=1e-3)
+    assert np.allclose(z.std(0)[ds.train.pose.reshape(-1, 63).std(0) > 1e-3], 1, atol=1e-3)
+
+
+def test_standardizer_floor_on_constant_channel():
+    pose = np.random.default_rng(0).normal(size=(4, 10, 63)).astype(np.float32)
+    pose[..., 5] = 0.3
+    st = Standardizer.fit(pose, np.zeros((4, 10, 3)))
+    assert st.pose_std[5] == pytest.approx(1e-3) and np.isfinite(st.log_det_per_frame)
+
+
+def test_batches_deterministic_and_resumable(ds):
+    b1 = ds.batch("train", 8, seed=3, index=5)
+    b2 = ds.batch("train", 8, seed=3, index=5)
+    np.testing.assert_array_equal(b1["pose"], b2["pose"])
+    assert b1["pose"].shape == (8, 40, 63) and b1["control"].shape == (8, 40, 3)
+    assert b1["pose"].dtype == np.float32
+    assert not np.array_equal(b1["pose"], ds.batch("train", 8, seed=4, index=5)["pose"])
+    stream = list(ds.batches("train", 8, seed=3, epochs=2))
+    per_epoch = len(ds.train) // 8
+    assert len(stream) == 2 * per_epoch
+    resumed = list(ds.batches("train", 8, seed=3, start=per_epoch + 1, epochs=2))
+    np.testing.assert_array_equal(resumed[0]["pose"], stream[per_epoch + 1]["pose"])
+    # one epoch visits distinct windows; the next epoch is a different order
+    raw = ds.arrays("train")["pose"]
+    first = np.concatenate([b["pose"] for b in stream[:per_epoch]])
+    assert len({raw_i.tobytes() for raw_i in first}) == per_epoch * 8
+    assert not np.array_equal(stream[0]["pose"], stream[per_epoch]["pose"])
+    unstd = ds.batch("val", 4, seed=0, index=0, standardized=False)
+    assert np.abs(unstd["pose"]).max() < 3.0  # metres
+
+
+def test_windows_pad_short_clips_and_report():
+    rng = np.random.default_rng(0)
+    clips = [Clip(rng.normal(size=(n, 63)), rng.normal(size=(n, 3)), 20.0, f"c{n}", {})
+             for n in (25, 50, 5)]
+    ws, stats = make_windows(clips, 40, 10)
+    assert stats["padded_windows"] == 1 and stats["dropped_clips"] == ["c5 (5 frames)"]
+    assert stats["frames_used"] == 75 and stats["frames_total"] == 80
+    padded = ws.take == "c25"
+    assert ws.valid[padded].sum() == 25
+    # windows of the 50-frame clip cover the tail: starts 0 and 10
+    assert sorted(ws.start[ws.take == "c50"]) == [0, 10]
+
+
+def test_cache_hit_is_identical(tmp_path):
+    a = load_dataset("synthetic", n_clips=3, seconds=4.0, seed=2, window=20, cache_dir=tmp_path)
+    assert a.info["cache_file"] and list(tmp_path.glob("*.npz"))
+    b = load_dataset("synthetic", n_clips=3, seconds=4.0, seed=2, window=20, cache_dir=tmp_path)
+    np.testing.assert_array_equal(a.train.pose, b.train.pose)
+
+
+def test_errors_for_people(tmp_path, monkeypatch):
+    with pytest.raises(ValueError, match="synthetic, bandai, bvh"):
+        load_dataset("cmu-mocap")
+    monkeypatch.setenv("MOTIONFLOWS_BANDAI_DIR", str(tmp_path / "missing"))
+    with pytest.raises(MotionDataError, match="motionflows data download bandai"):
+        load_dataset("bandai", path=str(tmp_path / "missing"))
+    with pytest.raises(MotionDataError, match="no .bvh files"):
+        load_dataset("bvh", path=str(tmp_path))
+
+
+def test_bvh_source_and_performer_split(tmp_path):
+    from tests.test_data_bvh import SIMPLE  # noqa: F401  (small skeleton, wrong mapping)
+
+    (tmp_path / "a.bvh").write_text(SIMPLE)
+    with pytest.raises(MotionDataError, match="skeleton mapping"):
+        load_dataset("bvh", path=str(tmp_path), cache=False)
+    syn = load_dataset("synthetic", n_clips=8, seconds=4.0, window=20, split_by="performer",
+                       cache=False)
+    assert syn.info["performers"]["test"] == ["S3"]
+    assert "S3" not in syn.info["performers"]["train"]
+
+
+def test_control_presets():
+    for name in PRESETS:
+        c = preset(name, 6.0)
+        assert c.shape == (120, 3) and c.dtype == np.float32
+    assert np.degrees(preset("walk-turn-left", 8.0)[:, 2].sum()) == pytest.approx(90, abs=1)
+    assert np.degrees(preset("walk-turn-right", 8.0)[:, 2].sum()) == pytest.approx(-90, abs=1)
+    assert preset("walk", 4.0)[:, 0].mean() * 20 == pytest.approx(1.1, abs=0.01)
+    assert preset("walk-back", 4.0)[:, 0].mean() < 0
+    assert preset("sidestep-left", 4.0)[:, 1].mean() > 0
+    with pytest.raises(ValueError, match="walk-turn-left"):
+        preset("moonwalk", 3.0)
+
+
+def test_load_control_file(tmp_path):
+    np.save(tmp_path / "c.npy", np.ones((10, 3)))
+    assert load_control(tmp_path / "c.npy", 1.0).shape == (20, 3)
+    np.save(tmp_path / "bad.npy", np.ones((10, 4)))
+    with pytest.raises(ValueError, match=r"\(T, 3\)"):
+        load_control(tmp_path / "bad.npy")
+    np.save(tmp_path / "nan.npy", np.full((10, 3), np.nan))
+    with pytest.raises(ValueError, match="non-finite"):
+        load_control(tmp_path / "nan.npy")
+    assert load_control("run", 2.0).shape == (40, 3)

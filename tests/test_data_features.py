@@ -1,0 +1,163 @@
+"""Feature recipe: controls, root frame, resampling, augmentation involutions, real data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motionflows.data import clip_from_bvh
+from motionflows.data.augment import mirror_clip, reverse_clip, reverse_time
+from motionflows.data.features import (
+    features_from_positions,
+    integrate_control,
+    resample,
+    world_from_features,
+)
+from motionflows.data.names import JOINT_NAMES, NUM_JOINTS
+from motionflows.data.synthetic import generate, straight_walk
+
+DEV = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bandai_locomotion_dev"
+
+
+def _t_pose(n):
+    """A rigid T-pose-ish body (n, 21, 3) facing +z with left = +x."""
+    base = np.zeros((NUM_JOINTS, 3))
+    base[:, 1] = 1.0
+    for name, x, y in [("LeftUpLeg", 0.1, 0.9), ("RightUpLeg", -0.1, 0.9), ("LeftArm", 0.2, 1.4),
+                       ("RightArm", -0.2, 1.4), ("LeftFoot", 0.1, 0.1), ("RightFoot", -0.1, 0.1),
+                       ("LeftToe", 0.1, 0.0), ("RightToe", -0.1, 0.0), ("Hips", 0.0, 0.9)]:
+        base[JOINT_NAMES.index(name)] = (x, y, 0.0)
+    return np.repeat(base[None], n, 0)
+
+
+def _rot(p, yaw):
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = p[..., 0], p[..., 2]
+    return np.stack([c * x + s * z, p[..., 1], -s * x + c * z], -1)
+
+
+def test_rigid_translation_gives_exact_controls():
+    n, fps = 60, 20.0
+    body = _t_pose(n)
+    yaw0 = 0.7  # facing direction (sin, 0, cos)(yaw0)
+    world = _rot(body, yaw0)
+    speed, side = 1.2, 0.3  # m/s forward and to the left
+    fwd = np.array([np.sin(yaw0), 0, np.cos(yaw0)])
+    left = np.array([np.cos(yaw0), 0, -np.sin(yaw0)])
+    t = np.arange(n)[:, None, None] / fps
+    world = world + t * (speed * fwd + side * left)
+    clip = features_from_positions(world, fps, fps)
+    np.testing.assert_allclose(clip.control[:, 0], speed / fps, atol=1e-6)
+    np.testing.assert_allclose(clip.control[:, 1], side / fps, atol=1e-6)
+    np.testing.assert_allclose(clip.control[:, 2], 0.0, atol=1e-6)
+    pose = clip.pose.reshape(-1, NUM_JOINTS, 3)
+    # root frame: character faces +z, left arm on +x, feet on the floor
+    assert (pose[:, JOINT_NAMES.index("LeftArm"), 0] > 0.15).all()
+    assert pose[:, [3, 4, 7, 8], 1].min() == pytest.approx(0.0, abs=1e-6)
+    assert pose[:, 0, 1].mean() == pytest.approx(0.9, abs=1e-6)
+
+
+def test_turning_left_is_positive_and_integrates_back():
+    n, fps = 80, 20.0
+    rate = 0.5  # rad/s counter-clockwise
+    yaw = rate * np.arange(n) / fps
+    body = _t_pose(n)
+    # walk on a circle of radius r: centre on the left of the start
+    r = 2.0
+    pos = np.stack([r - r * np.cos(yaw), np.zeros(n), r * np.sin(yaw)], -1)
+    world = _rot(body, yaw[:, None]) + pos[:, None, :]
+    clip = features_from_positions(world, fps, fps)
+    core = clip.control[10:-10]
+    np.testing.assert_allclose(core[:, 2], rate / fps, atol=2e-4)
+    np.testing.assert_allclose(core[:, 0], r * rate / fps, rtol=0.01)
+    rebuilt = world_from_features(clip.pose, clip.control)
+    # rebuilt world equals the original up to the start pose (rigid transform)
+    rp, _ = integrate_control(clip.control)
+    assert np.linalg.norm(rp[-1]) == pytest.approx(np.linalg.norm(pos[n - 1] - pos[0]),
+                                                   rel=0.02)
+    assert rebuilt.shape == (n - 1, NUM_JOINTS, 3)
+
+
+def test_resample_keeps_speed():
+    x = np.arange(31, dtype=float)[:, None] * 0.05  # 1.5 m/s at 30 fps
+    y = resample(x, 30.0, 20.0)
+    assert y.shape[0] == 21
+    np.testing.assert_allclose(np.diff(y[:, 0]), 0.075)
+
+
+def test_synthetic_straight_walk_control_matches_speed():
+    for speed in (1.1, 2.5, -0.8):
+        clip = straight_walk(speed, seconds=5.0, seed=1)
+        core = clip.control[5:-5]
+        assert core[:, 0].mean() == pytest.approx(speed / 20.0, rel=0.03)
+        assert abs(core[:, 1].mean()) < 0.005 / 20 * 20  # < 5 mm/frame sideways drift
+        assert abs(core[:, 2].mean()) < 0.01 / 20.0
+
+
+def test_mirror_and_reverse_are_involutions():
+    clip = generate(1, 4.0, seed=3)[0]
+    twice = mirror_clip(mirror_clip(clip))
+    np.testing.assert_array_equal(twice.pose, clip.pose)
+    np.testing.assert_array_equal(twice.control, clip.control)
+    back = reverse_clip(reverse_clip(clip))
+    np.testing.assert_allclose(back.pose, clip.pose)
+    np.testing.assert_allclose(back.control, clip.control, atol=1e-7)
+    # they do something
+    assert not np.allclose(mirror_clip(clip).pose, clip.pose)
+    assert not np.allclose(reverse_clip(clip).control, clip.control)
+
+
+def test_reverse_control_is_the_true_backward_step():
+    clip = generate(1, 4.0, seed=4)[0]
+    pos, yaw = integrate_control(clip.control)
+    _, rc = reverse_time(clip.pose, clip.control)
+    # integrate the reversed control from the last point with the last heading
+    rpos, _ = integrate_control(rc[:-1], yaw0=yaw[-2], start=pos[-2])
+    np.testing.assert_allclose(rpos[-1], pos[0], atol=1e-4)
+
+
+def test_mirror_swaps_left_right_and_turn_sign():
+    clip = generate(1, 4.0, seed=5)[0]
+    m = mirror_clip(clip)
+    p, q = clip.pose.reshape(-1, 21, 3), m.pose.reshape(-1, 21, 3)
+    np.testing.assert_allclose(q[:, 13, 0], -p[:, 17, 0])
+    np.testing.assert_allclose(m.control[:, 2], -clip.control[:, 2])
+    np.testing.assert_allclose(m.control[:, 0], clip.control[:, 0])
+
+
+@pytest.mark.skipif(not DEV.is_dir(), reason="../shared/data not present")
+def test_dev_files_load_with_plausible_height_and_speed():
+    files = sorted(DEV.glob("*.bvh"))
+    assert len(files) >= 200
+    walk_speeds, turns = [], {}
+    for f in files:
+        clip = clip_from_bvh(f)
+        assert clip.pose.dtype == np.float32 and np.isfinite(clip.pose).all()
+        hip = clip.pose[:, 1].mean()
+        assert 0.7 <= hip <= 1.1, (f.name, hip)
+        content = f.stem.split("_")[1]
+        if content == "walk":
+            walk_speeds.append(clip.control[:, 0].mean() * clip.fps)
+        turns.setdefault(content, []).append(np.degrees(clip.control[:, 2].sum()))
+    assert 0.8 <= np.median(walk_speeds) <= 1.5
+    assert 60 < np.mean(turns["walk-turn-left"]) < 110
+    assert -110 < np.mean(turns["walk-turn-right"]) < -60
+
+
+@pytest.mark.skipif(not DEV.is_dir(), reason="../shared/data not present")
+def test_pseudo_fingertip_follows_forearm_and_is_not_a_copy():
+    clip = clip_from_bvh(DEV / "dataset-2_walk_normal_001.bvh")
+    p = clip.pose.reshape(-1, 21, 3)
+    for elbow, hand, tip in ((14, 15, 16), (18, 19, 20)):
+        fore = p[:, hand] - p[:, elbow]
+        bone = p[:, tip] - p[:, hand]
+        np.testing.assert_allclose(np.linalg.norm(bone, axis=-1), 0.08, atol=1e-3)
+        cos = np.sum(fore * bone, -1) / np.linalg.norm(fore, axis=-1) / 0.08
+        assert cos.mean() > 0.9
+    # walking backwards has negative forward control; run is faster than walk
+    back = clip_from_bvh(DEV / "dataset-1_walk-back_active_001.bvh")
+    assert back.control[:, 0].mean() * 20 < -0.5
+    run = clip_from_bvh(DEV / "dataset-2_run_normal_001.bvh", fps=60.0)
+    assert run.fps == 60.0 and run.control[:, 0].mean() * 60 > 1.8

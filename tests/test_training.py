@@ -1,0 +1,176 @@
+"""The training loop: exact resume, Ctrl-C checkpoint, non-finite guard, run reload, eval."""
+
+import dataclasses
+import json
+import os
+import signal
+import sys
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from _fake_data import FakeDataset
+from flax import nnx
+
+import experiments.baselines as baselines
+from motionflows.config import TrainConfig
+from motionflows.evaluation import likelihood
+from motionflows.runs import read_metrics
+from motionflows.training import (
+    evaluate_run,
+    gradient_clipping,
+    learning_rate_schedule,
+    load_run,
+    make_optimizer,
+    train,
+)
+
+
+def _noisy_loss(model, batch, key):
+    # the key matters: a resume that replays different random draws changes the curve
+    loss, metrics = baselines.loss(model, batch, key)
+    return loss + 0.1 * jax.random.normal(key, ()), metrics
+
+
+fake = types.ModuleType("experiments.fake_gaussian")
+for name in ("Config", "PRESETS", "SCOPES", "build", "evaluate", "sample"):
+    setattr(fake, name, getattr(baselines, name))
+fake.NAME = "fake_gaussian"
+fake.loss = _noisy_loss
+sys.modules["experiments.fake_gaussian"] = fake
+
+CONFIG = baselines.Config(
+    model="gaussian",
+    tau=2,
+    train=TrainConfig(steps=6, batch_size=4, lr=0.05, log_every=1, eval_every=3,
+                      eval_batches=1, checkpoint_every=100, keep_checkpoints=2),
+)
+
+
+def _losses(run_dir):
+    return [(r["step"], r["loss"]) for r in read_metrics(run_dir) if "loss" in r]
+
+
+def _params(model):
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(nnx.state(model, nnx.Param))]
+
+
+def test_resume_after_ctrl_c_gives_identical_loss_sequence(tmp_path):
+    data = FakeDataset()
+    full = train(fake, CONFIG, run_dir=tmp_path / "a", dataset=data, progress=False)
+    assert full.status == "finished" and full.step == 6
+
+    def interrupt(step, out):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    part = train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False,
+                 on_step=interrupt)
+    assert part.status == "interrupted" and part.step == 3
+    assert (tmp_path / "b" / "checkpoints" / "latest" / "3").is_dir()
+    with pytest.raises(ValueError, match="--resume"):
+        train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False)
+    resumed = train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False,
+                    resume=True)
+    assert resumed.status == "finished" and resumed.step == 6
+    a, b = _losses(tmp_path / "a"), _losses(tmp_path / "b")
+    assert [s for s, _ in a] == list(range(1, 7))
+    assert a == b
+    for x, y in zip(_params(full.model), _params(resumed.model), strict=True):
+        np.testing.assert_array_equal(x, y)
+    # the loss went down and the plot exists
+    assert a[-1][1] < a[0][1]
+    assert (tmp_path / "a" / "loss.png").is_file()
+    row = next(r for r in read_metrics(tmp_path / "a") if "loss" in r)
+    for key in ("grad_norm", "lr", "steps_per_s", "frames_per_s", "skipped"):
+        assert key in row
+
+
+def test_guard_skips_nan_steps_and_stops_after_max_nonfinite(tmp_path):
+    cfg = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, max_nonfinite=2,
+                                                                steps=8))
+    # one bad batch: skipped and counted, the run finishes
+    one = train(fake, cfg, run_dir=tmp_path / "one", dataset=FakeDataset(nan_at={2}),
+                progress=False)
+    assert one.status == "finished"
+    rows = [r for r in read_metrics(tmp_path / "one") if "skipped" in r]
+    assert rows[-1]["skipped"] == 1 and rows[2]["loss"] is None  # step 3 had no finite loss
+    assert all(np.all(np.isfinite(p)) for p in _params(one.model))
+
+    # bad from batch 3 on: steps 4 and 5 skipped, the run stops at 5 with the step-3 state
+    bad = train(fake, cfg, run_dir=tmp_path / "bad", dataset=FakeDataset(nan_at=range(3, 99)),
+                progress=False)
+    assert bad.status == "nonfinite" and bad.step == 5
+    good = train(fake, dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=3)),
+                 run_dir=tmp_path / "good", dataset=FakeDataset(), progress=False)
+    _, _, restored, _ = load_run(tmp_path / "bad", checkpoint="latest", dataset=FakeDataset())
+    for x, y in zip(_params(good.model), _params(restored), strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert read_metrics(tmp_path / "bad")[-1]["status"] == "nonfinite"
+
+
+def test_fit_load_run_and_eval_table(tmp_path):
+    data = FakeDataset(n=128)
+    cfg = dataclasses.replace(CONFIG, model="linear_ar", covariance="diag",
+                              train=dataclasses.replace(CONFIG.train, batch_size=16))
+    res = train(baselines, cfg, run_dir=tmp_path / "ar", dataset=data, progress=False)
+    assert res.status == "fitted"
+    module, config, model, _ = load_run(tmp_path / "ar", dataset=data)
+    assert module is baselines and config == cfg
+    batch = data.batch("test", 5, seed=0, index=0)
+    np.testing.assert_allclose(
+        model.log_prob(batch["pose"], batch["control"]),
+        res.model.log_prob(batch["pose"], batch["control"]), rtol=1e-6)
+
+    rows = evaluate_run(tmp_path / "ar", "test", dataset=data, batch_size=5,
+                        print_table=False)
+    saved = json.loads((tmp_path / "ar" / "eval_test.json").read_text())
+    assert saved["rows"] == rows
+    by = {r["scope"]: r for r in rows}
+    assert by["window"]["scored_frames_per_window"] == 8
+    assert by["official"]["scored_frames_per_window"] == 6  # tau = 2 frames conditioned on
+    pose = data.standardizer.normalize_pose(data.test.pose).astype(np.float32)
+    control = data.standardizer.normalize_control(data.test.control).astype(np.float32)
+    ll = np.asarray(model.log_prob(pose, control), np.float64)
+    ldpf = data.standardizer.log_det_per_frame
+    assert by["window"]["windows"] == len(pose)
+    np.testing.assert_allclose(by["window"]["nats_per_frame_metres"],
+                               np.mean(-(ll + 8 * ldpf) / 8), rtol=1e-5)
+    np.testing.assert_allclose(by["window"]["bits_per_frame_std"],
+                               np.mean(-ll / 8 / np.log(2)), rtol=1e-5)
+    lo, hi = by["window"]["nats_per_frame_metres_ci95"]
+    assert lo < by["window"]["nats_per_frame_metres"] < hi
+    # the fitted AR beats a gradient-free untrained model by far
+    untrained = baselines.build(cfg, key=jax.random.key(0))
+    assert float(jnp.mean(untrained.log_prob(pose, control))) < ll.mean()
+
+
+def test_bootstrap_and_units():
+    ll = np.array([-10.0, -12.0, -14.0])
+    np.testing.assert_allclose(likelihood.nats_per_frame_metres(ll, 2, 1.5), [3.5, 4.5, 5.5])
+    np.testing.assert_allclose(likelihood.bits_per_frame_standardized(ll, 2),
+                               -ll / 2 / np.log(2))
+    mean, lo, hi = likelihood.bootstrap_ci(np.arange(100.0), seed=1)
+    assert mean == 49.5 and 43 < lo < 49.5 < hi < 56
+    with pytest.raises(ValueError, match="not finite"):
+        likelihood.likelihood_rows({"window": [np.nan, 1.0]}, 4, 0.0)
+
+
+def test_optimizer_clips_values_then_norm_and_warms_up():
+    tc = TrainConfig(lr=1.0, clip_value=1.0, clip_norm=1.0, warmup_steps=4, optimizer="adam")
+    sched = learning_rate_schedule(tc)
+    assert float(sched(0)) == 0.0 and float(sched(2)) == pytest.approx(0.5)
+    assert float(sched(10)) == pytest.approx(1.0)
+    opt = gradient_clipping(tc)
+    g = {"a": jnp.array([3.0, 0.0]), "b": jnp.array([0.0, 0.5])}
+    out, _ = opt.update(g, opt.init(g))
+    want = np.array([1.0, 0.0, 0.0, 0.5]) / np.sqrt(1.25)
+    np.testing.assert_allclose(np.concatenate([out["a"], out["b"]]), want, rtol=1e-6)
+    full = make_optimizer(tc)
+    out, _ = full.update(g, full.init(g), g)
+    assert float(out["a"][0]) == 0.0  # warm-up: the first step has lr 0
+    with pytest.raises(ValueError, match="optimizer"):
+        make_optimizer(dataclasses.replace(tc, optimizer="sgdd"))
