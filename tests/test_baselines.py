@@ -96,29 +96,30 @@ def test_ar_closed_form_recovers_the_sampling_model():
     np.testing.assert_allclose(fitted.cholesky(), true.cholesky(), atol=0.05)
 
 
+def _gradient_fit(init, data, steps=1500):
+    """Adam on the mean negative log-likelihood, all steps in one jitted fori_loop."""
+    graph, params, rest = nnx.split(init, nnx.Param, ...)
+    opt = optax.adam(0.03)
+
+    def nll(p):
+        return -jnp.mean(nnx.merge(graph, p, rest).log_prob(data["pose"], data["control"]))
+
+    def step(_, carry):
+        params, state = carry
+        updates, state = opt.update(jax.grad(nll)(params), state, params)
+        return optax.apply_updates(params, updates), state
+
+    params, _ = jax.jit(lambda p: jax.lax.fori_loop(0, steps, step, (p, opt.init(p))))(params)
+    return nnx.merge(graph, params, rest)
+
+
 def test_closed_form_matches_gradient_fit():
     true = _random_ar(jax.random.key(6))
     data = _ar_data(true, n=32, t=16, seed=1)
     for covariance in ("full", "diag"):
         init = LinearGaussianAR(TAU, pose_dim=D, control_dim=C, covariance=covariance, ridge=0.0)
         closed = fit_linear_ar(init, [data])
-
-        graph, params, rest = nnx.split(init, nnx.Param, ...)
-        opt = optax.adam(0.03)
-        state = opt.init(params)
-
-        @jax.jit
-        def step(params, state):
-            def nll(p):
-                return -jnp.mean(nnx.merge(graph, p, rest).log_prob(data["pose"], data["control"]))
-
-            g = jax.grad(nll)(params)
-            updates, state = opt.update(g, state, params)
-            return optax.apply_updates(params, updates), state
-
-        for _ in range(1500):
-            params, state = step(params, state)
-        grad_model = nnx.merge(graph, params, rest)
+        grad_model = _gradient_fit(init, data)
         ll_closed = float(jnp.mean(closed.log_prob(data["pose"], data["control"])))
         ll_grad = float(jnp.mean(grad_model.log_prob(data["pose"], data["control"])))
         # the closed form is the maximum: gradient descent gets close but not above it

@@ -128,6 +128,12 @@ def latent_shape(name, batch):
     return jax.eval_shape(lambda: bij.inverse(x, context=c)).shape
 
 
+# Compiled entry points shared by the generic checks (one compilation per case and shape;
+# eager execution is compared with them in test_jit_and_vmap_agree_with_eager).
+inv = jax.jit(lambda b, x, c: b.inverse_and_log_det(x, context=c))
+fwd = jax.jit(lambda b, z, c: b.forward_and_log_det(z, context=c))
+
+
 def close(a, b, tol=2e-4):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=tol, atol=tol)
 
@@ -143,11 +149,11 @@ CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
 def test_round_trip_both_ways(name):
     bij = built(name)
     x, c = data(name, (3,))
-    z, _ = bij.inverse_and_log_det(x, context=c)
+    z, _ = inv(bij, x, c)
     assert z.dtype == jnp.float32
-    close(bij.forward(z, context=c), x)
+    close(fwd(bij, z, c)[0], x)
     z0 = jax.random.normal(jax.random.key(3), latent_shape(name, (3,)))
-    close(bij.inverse(bij.forward(z0, context=c), context=c), z0)
+    close(inv(bij, fwd(bij, z0, c)[0], c)[0], z0)
     # not the identity (the registry promises non-trivial parameters), except Squeeze,
     # whose data and latent are the same numbers in another shape
     if name != "squeeze":
@@ -160,21 +166,24 @@ def test_log_det_matches_jacobian_both_directions(name):
     x, c = data(name, ())
     zshape = latent_shape(name, ())
 
-    def inv_flat(v):
-        return bij.inverse(v.reshape(T, D), context=c).reshape(-1)
+    @jax.jit
+    def jac_slogdet(b, v, c, direction):
+        def flat(v):
+            if direction == "inverse":
+                return b.inverse(v.reshape(T, D), context=c).reshape(-1)
+            return b.forward(v.reshape(zshape), context=c).reshape(-1)
 
-    def fwd_flat(v):
-        return bij.forward(v.reshape(zshape), context=c).reshape(-1)
+        return jnp.linalg.slogdet(jax.jacfwd(flat)(v))
 
-    _, ld_inv = bij.inverse_and_log_det(x, context=c)
-    sign, ref = jnp.linalg.slogdet(jax.jacfwd(inv_flat)(x.reshape(-1)))
+    _, ld_inv = inv(bij, x, c)
+    sign, ref = jac_slogdet(bij, x.reshape(-1), c, "inverse")
     assert ld_inv.shape == ()
     assert float(sign) != 0.0
     close(ld_inv, ref, tol=5e-4)
 
     z = jax.random.normal(jax.random.key(5), zshape)
-    _, ld_fwd = bij.forward_and_log_det(z, context=c)
-    sign, ref = jnp.linalg.slogdet(jax.jacfwd(fwd_flat)(z.reshape(-1)))
+    _, ld_fwd = fwd(bij, z, c)
+    sign, ref = jac_slogdet(bij, z.reshape(-1), c, "forward")
     assert float(sign) != 0.0
     close(ld_fwd, ref, tol=5e-4)
 
@@ -182,9 +191,9 @@ def test_log_det_matches_jacobian_both_directions(name):
 @pytest.mark.parametrize("name", NAMES)
 def test_forward_log_det_is_minus_inverse_log_det(name):
     bij = built(name)
-    x, c = data(name, (2,))
-    z, ld_inv = bij.inverse_and_log_det(x, context=c)
-    x_back, ld_fwd = bij.forward_and_log_det(z, context=c)
+    x, c = data(name, (3,))
+    z, ld_inv = inv(bij, x, c)
+    x_back, ld_fwd = fwd(bij, z, c)
     close(ld_fwd, -ld_inv)
     close(x_back, x)
 
@@ -193,21 +202,20 @@ def test_forward_log_det_is_minus_inverse_log_det(name):
 def test_jit_and_vmap_agree_with_eager(name):
     bij = built(name)
     x, c = data(name, (3,))
-    z, ld = bij.inverse_and_log_det(x, context=c)
+    z, ld = bij.inverse_and_log_det(x, context=c)  # eager
 
-    jitted_inv = jax.jit(lambda b, x, c: b.inverse_and_log_det(x, context=c))
-    zj, ldj = jitted_inv(bij, x, c)
+    zj, ldj = inv(bij, x, c)
     close(zj, z)
     close(ldj, ld)
-    jitted_fwd = jax.jit(lambda b, z, c: b.forward_and_log_det(z, context=c))
-    xj, ldfj = jitted_fwd(bij, z, c)
+    xj, ldfj = fwd(bij, z, c)
     close(xj, x)
     close(ldfj, -ld)
 
-    zv, ldv = jax.vmap(lambda x, c: bij.inverse_and_log_det(x, context=c))(x, c)
+    # vmap over the batch axis of unbatched (T, D) calls (compiled, to keep the suite fast)
+    zv, ldv = jax.jit(jax.vmap(lambda x, c: bij.inverse_and_log_det(x, context=c)))(x, c)
     close(zv, z)
     close(ldv, ld)
-    xv, ldfv = jax.vmap(lambda z, c: bij.forward_and_log_det(z, context=c))(z, c)
+    xv, ldfv = jax.jit(jax.vmap(lambda z, c: bij.forward_and_log_det(z, context=c)))(z, c)
     close(xv, x)
     close(ldfv, -ld)
 
@@ -216,22 +224,25 @@ def test_jit_and_vmap_agree_with_eager(name):
 def test_batch_shapes(name):
     bij = built(name)
     x, c = data(name, (2, 3))
-    z, ld = bij.inverse_and_log_det(x, context=c)
+    z, ld = inv(bij, x, c)
     assert ld.shape == (2, 3)
     assert z.shape[:2] == (2, 3)
     # every batch element equals its own unbatched computation
     for idx in [(0, 0), (1, 2)]:
         ci = None if c is None else c[idx]
-        zi, ldi = bij.inverse_and_log_det(x[idx], context=ci)
+        zi, ldi = inv(bij, x[idx], ci)
         assert ldi.shape == ()
         close(zi, z[idx])
         close(ldi, ld[idx])
+        xi, ldfi = fwd(bij, zi, ci)
+        assert ldfi.shape == ()
+        close(xi, x[idx])
     # (B,) batch: flatten the two leading axes
     cf = None if c is None else c.reshape(6, T, C)
-    zf, ldf = bij.inverse_and_log_det(x.reshape(6, T, D), context=cf)
+    zf, ldf = inv(bij, x.reshape(6, T, D), cf)
     assert ldf.shape == (6,)
     close(zf.reshape(z.shape), z)
-    xf, ldff = bij.forward_and_log_det(zf, context=cf)
+    xf, ldff = fwd(bij, zf, cf)
     assert ldff.shape == (6,)
     close(xf, x.reshape(6, T, D))
 
@@ -239,11 +250,11 @@ def test_batch_shapes(name):
 @pytest.mark.parametrize("name", CONTEXT_NAMES)
 def test_context_changes_output(name):
     bij = built(name)
-    x, c = data(name, (2,))
+    x, c = data(name, (3,))
     c2 = c + 1.0
-    z1, z2 = bij.inverse(x, context=c), bij.inverse(x, context=c2)
+    z1, z2 = inv(bij, x, c)[0], inv(bij, x, c2)[0]
     assert float(jnp.max(jnp.abs(z1 - z2))) > 1e-3
-    x1, x2 = bij.forward(z1, context=c), bij.forward(z1, context=c2)
+    x1, x2 = fwd(bij, z1, c)[0], fwd(bij, z1, c2)[0]
     assert float(jnp.max(jnp.abs(x1 - x2))) > 1e-3
 
 
@@ -265,9 +276,9 @@ def test_wrong_shapes_raise_clear_value_error(name):
 @pytest.mark.parametrize("name", CONTEXT_NAMES)
 def test_misaligned_context_raises(name):
     bij = built(name)
-    x, _ = data(name, (2,))
+    x, _ = data(name, (3,))
     with pytest.raises(ValueError, match="context"):
-        bij.inverse(x, context=jnp.zeros((2, T + 1, C)))
+        bij.inverse(x, context=jnp.zeros((3, T + 1, C)))
 
 
 # ----------------------------------------------------------------------------- ActNorm init
@@ -384,13 +395,13 @@ def test_scan_equals_chain_values_log_dets_and_grads():
     scan = built("scan")
     chain = scan.unrolled()
     assert len(chain) == K_STEPS
-    x, c = data("scan", (2,))
-    z_s, ld_s = scan.inverse_and_log_det(x, context=c)
-    z_c, ld_c = chain.inverse_and_log_det(x, context=c)
+    x, c = data("scan", (3,))
+    z_s, ld_s = inv(scan, x, c)
+    z_c, ld_c = inv(chain, x, c)
     close(z_s, z_c, 1e-5)
     close(ld_s, ld_c, 1e-5)
-    x_s, lf_s = scan.forward_and_log_det(z_s, context=c)
-    x_c, lf_c = chain.forward_and_log_det(z_s, context=c)
+    x_s, lf_s = fwd(scan, z_s, c)
+    x_c, lf_c = fwd(chain, z_s, c)
     close(x_s, x_c, 1e-5)
     close(lf_s, lf_c, 1e-5)
 
@@ -398,8 +409,9 @@ def test_scan_equals_chain_values_log_dets_and_grads():
         z, ld = m.inverse_and_log_det(x, context=c)
         return jnp.mean(0.5 * jnp.sum(z**2, axis=(-2, -1)) - ld)
 
-    g_scan = nnx.state(jax.grad(nll)(scan), nnx.Param)
-    g_chain = nnx.state(jax.grad(nll)(chain), nnx.Param)
+    grad = jax.jit(jax.grad(nll))
+    g_scan = nnx.state(grad(scan), nnx.Param)
+    g_chain = nnx.state(grad(chain), nnx.Param)
     for k in range(K_STEPS):
         gk = jax.tree.map(lambda a, k=k: a[k], g_scan["steps"])
         for a, b in zip(jax.tree.leaves(gk), jax.tree.leaves(g_chain["bijectors"][k])):
@@ -410,7 +422,7 @@ def test_scan_from_list_and_stacked_module():
     steps = [perturb(_glow_step(nnx.Rngs(i)), jax.random.key(i)) for i in range(2)]
     scan = bj.Scan(steps)
     chain = bj.Chain(steps)
-    x, c = data("scan", (2,))
+    x, c = data("scan", (3,))
     close(scan.inverse(x, context=c), chain.inverse(x, context=c), 1e-5)
     again = bj.Scan(scan.steps, 2)
     close(again.forward(x, context=c), chain.forward(x, context=c), 1e-5)

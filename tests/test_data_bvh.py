@@ -101,9 +101,10 @@ Frame Time: 0.1
 
 
 def test_position_channels_replace_offset_on_child():
-    text = SIMPLE.replace("CHANNELS 3 Yrotation Xrotation Zrotation",
-                          "CHANNELS 6 Xposition Yposition Zposition Yrotation Xrotation "
-                          "Zrotation")
+    text = SIMPLE.replace(
+        "CHANNELS 3 Yrotation Xrotation Zrotation",
+        "CHANNELS 6 Xposition Yposition Zposition Yrotation Xrotation Zrotation",
+    )
     lines = text.splitlines()
     lines[-2] = "0 0 0 0 0 0 5 0 0 0 0 0 0 0 0"
     lines[-1] = "0 0 0 0 0 0 1 0 0 0 0 0 0 0 0"
@@ -117,12 +118,16 @@ MALFORMED = {
     "no hierarchy": (SIMPLE.replace("HIERARCHY", "HIERARCH"), "HIERARCHY"),
     "no motion": (SIMPLE.split("MOTION")[0], "MOTION"),
     "truncated": (SIMPLE.rsplit("\n", 2)[0] + "\n", "truncated"),
-    "value count": (SIMPLE.replace("1 2 3 0 0 90 0 0 90 90 0 0", "1 2 3 0 0 90 0 0 90 90 0"),
-                    "11 values"),
+    "value count": (
+        SIMPLE.replace("1 2 3 0 0 90 0 0 90 90 0 0", "1 2 3 0 0 90 0 0 90 90 0"),
+        "11 values",
+    ),
     "non-numeric": (SIMPLE.replace("1 2 3 0 0 90", "1 2 x 0 0 90"), "non-numeric"),
     "non-finite": (SIMPLE.replace("1 2 3 0 0 90", "1 2 nan 0 0 90"), "non-finite"),
-    "unknown channel": (SIMPLE.replace("Xrotation Yrotation Zrotation",
-                                       "Xrotation Yrotation Wrotation"), "unknown channel"),
+    "unknown channel": (
+        SIMPLE.replace("Xrotation Yrotation Zrotation", "Xrotation Yrotation Wrotation"),
+        "unknown channel",
+    ),
     "bad frames": (SIMPLE.replace("Frames: 2", "Frames: two"), "Frames"),
     "bad brace": (SIMPLE.replace("  JOINT Leg", "  JUNK Leg"), "unexpected"),
 }

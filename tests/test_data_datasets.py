@@ -16,8 +16,9 @@ from motionflows.data.pipeline import make_windows
 @pytest.fixture(scope="module")
 def ds(tmp_path_factory):
     cache = tmp_path_factory.mktemp("cache")
-    return load_dataset("synthetic", n_clips=12, seconds=6.0, seed=1, window=40, hop=10,
-                        cache_dir=cache)
+    return load_dataset(
+        "synthetic", n_clips=12, seconds=6.0, seed=1, window=40, hop=10, cache_dir=cache
+    )
 
 
 def test_shapes_info_and_disjoint_splits(ds):
@@ -30,9 +31,18 @@ def test_shapes_info_and_disjoint_splits(ds):
     assert ds.info["takes"] == {"train": 10, "val": 1, "test": 1}
     assert ds.info["frames_used"]["val"] == ds.info["frames_total"]["val"]
     # mirror augmentation doubles the training windows
-    assert len(ds.train) == 2 * len(load_dataset(
-        "synthetic", n_clips=12, seconds=6.0, seed=1, window=40, hop=10, mirror=False,
-        cache=False).train)
+    assert len(ds.train) == 2 * len(
+        load_dataset(
+            "synthetic",
+            n_clips=12,
+            seconds=6.0,
+            seed=1,
+            window=40,
+            hop=10,
+            mirror=False,
+            cache=False,
+        ).train
+    )
     with pytest.raises(ValueError, match="valid: train, val, test"):
         ds.split("nope")
 
@@ -44,8 +54,9 @@ def test_standardizer_log_jacobian_matches_autodiff(ds):
     jac = jax.jacfwd(lambda v: st.normalize_pose(v))(x)
     _, logdet = jnp.linalg.slogdet(jac)
     assert float(logdet) == pytest.approx(st.log_det_per_frame, rel=1e-5)
-    np.testing.assert_allclose(st.denormalize_pose(st.normalize_pose(ds.val.pose)),
-                               ds.val.pose, atol=1e-5)
+    np.testing.assert_allclose(
+        st.denormalize_pose(st.normalize_pose(ds.val.pose)), ds.val.pose, atol=1e-5
+    )
     back = Standardizer.from_dict(st.to_dict())
     np.testing.assert_array_equal(back.pose_std, st.pose_std)
     # fitted on the (augmented) training windows: standardised training data are N(0, 1)
@@ -74,7 +85,6 @@ def test_batches_deterministic_and_resumable(ds):
     resumed = list(ds.batches("train", 8, seed=3, start=per_epoch + 1, epochs=2))
     np.testing.assert_array_equal(resumed[0]["pose"], stream[per_epoch + 1]["pose"])
     # one epoch visits distinct windows; the next epoch is a different order
-    raw = ds.arrays("train")["pose"]
     first = np.concatenate([b["pose"] for b in stream[:per_epoch]])
     assert len({raw_i.tobytes() for raw_i in first}) == per_epoch * 8
     assert not np.array_equal(stream[0]["pose"], stream[per_epoch]["pose"])
@@ -84,8 +94,10 @@ def test_batches_deterministic_and_resumable(ds):
 
 def test_windows_pad_short_clips_and_report():
     rng = np.random.default_rng(0)
-    clips = [Clip(rng.normal(size=(n, 63)), rng.normal(size=(n, 3)), 20.0, f"c{n}", {})
-             for n in (25, 50, 5)]
+    clips = [
+        Clip(rng.normal(size=(n, 63)), rng.normal(size=(n, 3)), 20.0, f"c{n}", {})
+        for n in (25, 50, 5)
+    ]
     ws, stats = make_windows(clips, 40, 10)
     assert stats["padded_windows"] == 1 and stats["dropped_clips"] == ["c5 (5 frames)"]
     assert stats["frames_used"] == 75 and stats["frames_total"] == 80
@@ -113,13 +125,17 @@ def test_errors_for_people(tmp_path, monkeypatch):
 
 
 def test_bvh_source_and_performer_split(tmp_path):
-    from tests.test_data_bvh import SIMPLE  # noqa: F401  (small skeleton, wrong mapping)
-
-    (tmp_path / "a.bvh").write_text(SIMPLE)
+    tiny = (
+        "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Xposition Yposition "
+        "Zposition\n End Site\n {\n  OFFSET 0 1 0\n }\n}\nMOTION\nFrames: 2\n"
+        "Frame Time: 0.05\n0 0 0\n1 0 0\n"
+    )
+    (tmp_path / "a.bvh").write_text(tiny)
     with pytest.raises(MotionDataError, match="skeleton mapping"):
         load_dataset("bvh", path=str(tmp_path), cache=False)
-    syn = load_dataset("synthetic", n_clips=8, seconds=4.0, window=20, split_by="performer",
-                       cache=False)
+    syn = load_dataset(
+        "synthetic", n_clips=8, seconds=4.0, window=20, split_by="performer", cache=False
+    )
     assert syn.info["performers"]["test"] == ["S3"]
     assert "S3" not in syn.info["performers"]["train"]
 

@@ -25,9 +25,17 @@ def _t_pose(n):
     """A rigid T-pose-ish body (n, 21, 3) facing +z with left = +x."""
     base = np.zeros((NUM_JOINTS, 3))
     base[:, 1] = 1.0
-    for name, x, y in [("LeftUpLeg", 0.1, 0.9), ("RightUpLeg", -0.1, 0.9), ("LeftArm", 0.2, 1.4),
-                       ("RightArm", -0.2, 1.4), ("LeftFoot", 0.1, 0.1), ("RightFoot", -0.1, 0.1),
-                       ("LeftToe", 0.1, 0.0), ("RightToe", -0.1, 0.0), ("Hips", 0.0, 0.9)]:
+    for name, x, y in [
+        ("LeftUpLeg", 0.1, 0.9),
+        ("RightUpLeg", -0.1, 0.9),
+        ("LeftArm", 0.2, 1.4),
+        ("RightArm", -0.2, 1.4),
+        ("LeftFoot", 0.1, 0.1),
+        ("RightFoot", -0.1, 0.1),
+        ("LeftToe", 0.1, 0.0),
+        ("RightToe", -0.1, 0.0),
+        ("Hips", 0.0, 0.9),
+    ]:
         base[JOINT_NAMES.index(name)] = (x, y, 0.0)
     return np.repeat(base[None], n, 0)
 
@@ -75,8 +83,7 @@ def test_turning_left_is_positive_and_integrates_back():
     rebuilt = world_from_features(clip.pose, clip.control)
     # rebuilt world equals the original up to the start pose (rigid transform)
     rp, _ = integrate_control(clip.control)
-    assert np.linalg.norm(rp[-1]) == pytest.approx(np.linalg.norm(pos[n - 1] - pos[0]),
-                                                   rel=0.02)
+    assert np.linalg.norm(rp[-1]) == pytest.approx(np.linalg.norm(pos[n - 1] - pos[0]), rel=0.02)
     assert rebuilt.shape == (n - 1, NUM_JOINTS, 3)
 
 

@@ -48,18 +48,20 @@ def test_kernel_scales_with_fps():
 @pytest.mark.parametrize("fps, t", [(20.0, 80), (60.0, 240)])
 def test_shapes_through_encoder_cell_decoder(fps, t):
     model = VAELSTM(kernel=kernel_for_fps(fps), rngs=nnx.Rngs(0))  # paper widths
-    x, c = _data(jax.random.key(1), 2, t)
-    n = t // 4
-    h = model.encode_control(c)
-    mu, log_std = model.posterior(x)
-    assert h.shape == (2, n, 128) and mu.shape == log_std.shape == (2, n, 128)
-    canvas = model.canvas(mu, h)
-    assert canvas.shape == (2, n, 128)
-    assert model.canvas(mu, h, recurrent=True).shape == (2, n, 128)
-    out = model.decode(canvas)
-    assert out.shape == (2, t, POSE_DIM)
-    assert model.sample(jax.random.key(0), c).shape == (2, t, POSE_DIM)
     assert model.conv_kernel_sizes() == {kernel_for_fps(fps)}
+    n = t // 4
+
+    def run(model, x, c, key):
+        h = model.encode_control(c)
+        mu, log_std = model.posterior(x)
+        canvas = model.canvas(mu, h)
+        return (h, mu, log_std, canvas, model.canvas(mu, h, recurrent=True),
+                model.decode(canvas), model.sample(key, c), model.elbo(x, c, key))
+
+    x = jax.ShapeDtypeStruct((2, t, POSE_DIM), jnp.float32)
+    c = jax.ShapeDtypeStruct((2, t, CONTROL_DIM), jnp.float32)
+    shapes = [o.shape for o in jax.eval_shape(run, model, x, c, jax.random.key(0))]
+    assert shapes == [(2, n, 128)] * 5 + [(2, t, POSE_DIM)] * 2 + [(2,)]
 
 
 def test_clear_errors_on_bad_shapes():
@@ -94,16 +96,20 @@ def test_kl_matches_monte_carlo():
 def test_elbo_terms_are_consistent():
     model = _tiny()
     x, c = _data(jax.random.key(2), 3, 16)
-    terms = model.elbo_terms(x, c, jax.random.key(0))
-    mu, log_std = model.posterior(x)
+
+    @jax.jit
+    def run(model, x, c):
+        k = jax.random.key(0)
+        return (model.elbo_terms(x, c, k), model.posterior(x), model.elbo_terms(x, c, k),
+                model.elbo_terms(x, c, k, train=True))
+
+    terms, (mu, log_std), again, train = run(model, x, c)
     np.testing.assert_allclose(
         terms["kl"], kl_to_standard_normal(mu, log_std).sum(axis=(1, 2)), rtol=1e-5
     )
     np.testing.assert_allclose(terms["elbo"], terms["log_lik"] - terms["kl"], rtol=1e-5)
     # evaluation is deterministic given the key; training mode (dropout) is not the same
-    again = model.elbo_terms(x, c, jax.random.key(0))
     np.testing.assert_array_equal(terms["elbo"], again["elbo"])
-    train = model.elbo_terms(x, c, jax.random.key(0), train=True)
     assert not np.allclose(train["elbo"], terms["elbo"])
 
 
@@ -112,42 +118,63 @@ def test_iwae_bound_above_elbo_and_rising_with_k():
     model = E.build(config, key=jax.random.key(0))
     x, c = _data(jax.random.key(5), 16, 16)
     x = 0.5 * x + jnp.sin(jnp.arange(16))[None, :, None]  # some structure
-    out = jax.jit(E.evaluate)(model, {"pose": x, "control": c}, jax.random.key(1))
+
+    @jax.jit
+    def run(model, x, c):
+        out = E.evaluate(model, {"pose": x, "control": c}, jax.random.key(1))
+        elbo = model.elbo(x, c, jax.random.key(7), num_samples=50)
+        direct = model.iwae_bound(x, c, jax.random.key(9), num_samples=10)
+        return out, elbo.mean(), direct.mean()
+
+    out, elbo, direct = run(model, x, c)
     assert set(out) == {"elbo", "iwae_1", "iwae_10", "iwae_100"}
     assert all(v.shape == (16,) and bool(jnp.isfinite(v).all()) for v in out.values())
-    elbo = float(model.elbo(x, c, jax.random.key(7), num_samples=50).mean())
     means = [float(out[f"iwae_{k}"].mean()) for k in (1, 10, 100)]
+    elbo = float(elbo)
     assert abs(means[0] - elbo) < 0.05 * abs(elbo)  # L_1 is the ELBO in expectation
     assert elbo < means[1] < means[2]
-    # the direct bound function agrees in distribution with the nested one
-    direct = float(model.iwae_bound(x, c, jax.random.key(9), num_samples=10).mean())
-    assert elbo < direct
+    assert elbo < float(direct)  # the direct bound function, independent draws
     assert all(E.SCOPES[k].bound for k in out)
 
 
 def test_test_time_recurrence_uses_only_z1():
     model = _tiny()
     _, c = _data(jax.random.key(0), 2, 32)
-    h = model.encode_control(c)
     z = jax.random.normal(jax.random.key(1), (2, 8, 8))
     z_other = z.at[:, 1:].set(jax.random.normal(jax.random.key(2), (2, 7, 8)) * 3.0)
-    rec = model.canvas(z, h, recurrent=True)
-    np.testing.assert_array_equal(rec, model.canvas(z_other, h, recurrent=True))
+
+    @jax.jit
+    def run(model, c, z, z_other):
+        h = model.encode_control(c)
+        k4, k5 = jax.random.key(4), jax.random.key(5)
+        return dict(
+            h=h,
+            rec=model.canvas(z, h, recurrent=True),
+            rec_other=model.canvas(z_other, h, recurrent=True),
+            rec_z1=model.canvas(z.at[:, 0].add(1.0), h, recurrent=True),
+            train=model.canvas(z, h),
+            train_other=model.canvas(z_other, h),
+            s4=model.sample(k4, c), s4b=model.sample(k4, c), s5=model.sample(k5, c),
+            cold4=model.sample(k4, c, temperature=0.0),
+            cold5=model.sample(k5, c, temperature=0.0),
+            seeded=model.sample(k4, c, seed_frames=jnp.ones((2, 8, POSE_DIM))),
+        )
+
+    r = run(model, c, z, z_other)
+    h, rec = r["h"], r["rec"]
+    np.testing.assert_array_equal(rec, r["rec_other"])  # z_2.. are not read at test time
     # ... while the training-mode canvas does read z_2.. and the recurrence reads z_1
-    assert not np.allclose(model.canvas(z, h), model.canvas(z_other, h))
-    assert not np.allclose(rec, model.canvas(z.at[:, 0].add(1.0), h, recurrent=True))
+    assert not np.allclose(r["train"], r["train_other"])
+    assert not np.allclose(rec, r["rec_z1"])
     # the recurrence is c_0 = z_1, c_t = cell(c_{t-1}, h_t)
     np.testing.assert_allclose(rec[:, 0], model.cell(z[:, 0], h[:, 0]), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(rec[:, 3], model.cell(rec[:, 2], h[:, 3]), rtol=1e-5, atol=1e-6)
     # sampling: deterministic in the key, different keys give different motion
-    s1 = model.sample(jax.random.key(4), c)
-    np.testing.assert_array_equal(s1, model.sample(jax.random.key(4), c))
-    assert not np.allclose(s1, model.sample(jax.random.key(5), c))
-    # temperature 0: z_1 = 0 for every key
-    np.testing.assert_allclose(model.sample(jax.random.key(4), c, temperature=0.0),
-                               model.sample(jax.random.key(5), c, temperature=0.0))
-    seeded = model.sample(jax.random.key(4), c, seed_frames=jnp.ones((2, 8, POSE_DIM)))
-    assert seeded.shape == (2, 32, POSE_DIM)
+    np.testing.assert_array_equal(r["s4"], r["s4b"])
+    assert not np.allclose(r["s4"], r["s5"])
+    np.testing.assert_allclose(r["cold4"], r["cold5"])  # temperature 0: z_1 = 0
+    assert r["seeded"].shape == (2, 32, POSE_DIM)
+    assert not np.allclose(r["seeded"], r["s4"])
     with pytest.raises(ValueError, match="multiple of 4"):
         model.sample(jax.random.key(4), c, seed_frames=jnp.ones((2, 6, POSE_DIM)))
 
@@ -156,30 +183,50 @@ def test_faithful_mode_sigma_floor_unit_variance_and_unpooling():
     model = _tiny(faithful=True, latent_dim=8, pose_features=16)
     # push every pre-activation of the inference network far negative
     model.pose_encoder.conv2.bias[...] = jnp.full((16,), -50.0)
-    x, c = _data(jax.random.key(0), 2, 16)
-    _, log_std = model.posterior(x * 10.0)
-    np.testing.assert_allclose(log_std, -1.0, atol=1e-6)  # sigma = exp(-1), not below
     default = _tiny()
     default.posterior_head.bias[...] = jnp.full((16,), -5.0)
-    assert float(default.posterior(x)[1].min()) < -2.0  # no floor by default
-    # unit output variance even if the (unused) parameter moves
-    model.out_log_std[...] = jnp.full((POSE_DIM,), 2.0)
-    np.testing.assert_array_equal(model.output_log_std(), 0.0)
-    # random unpooling: one of each pair is zero; evaluation mask is fixed
+    model.out_log_std[...] = jnp.full((POSE_DIM,), 2.0)  # unused when faithful
+    x, _ = _data(jax.random.key(0), 2, 16)
+    canvas = jax.random.normal(jax.random.key(3), (2, 4, 8))
     v = jax.random.normal(jax.random.key(1), (2, 4, 3)) + 5.0
-    up = random_unpool2(v, jax.random.key(2)).reshape(2, 4, 2, 3)
+
+    @jax.jit
+    def run(model, default):
+        return dict(
+            floor=model.posterior(x * 10.0)[1],
+            free=default.posterior(x)[1],
+            out_log_std=model.output_log_std(),
+            up=random_unpool2(v, jax.random.key(2)),
+            eval1=model.decode(canvas), eval2=model.decode(canvas),
+            train1=model.decode(canvas, jax.random.key(0)),
+            train2=model.decode(canvas, jax.random.key(1)),
+        )
+
+    r = run(model, default)
+    np.testing.assert_allclose(r["floor"], -1.0, atol=1e-6)  # sigma = exp(-1), not below
+    assert float(r["free"].min()) < -2.0  # no floor by default
+    np.testing.assert_array_equal(r["out_log_std"], 0.0)  # unit output variance
+    # random unpooling: one of each pair is zero; the evaluation mask is fixed
+    up = r["up"].reshape(2, 4, 2, 3)
     np.testing.assert_allclose(up.sum(axis=2), v, rtol=1e-6)
     assert bool(((up == 0).sum(axis=2) == 1).all())
-    canvas = jax.random.normal(jax.random.key(3), (2, 4, 8))
-    np.testing.assert_array_equal(model.decode(canvas), model.decode(canvas))
-    assert not np.allclose(model.decode(canvas, jax.random.key(0)),
-                           model.decode(canvas, jax.random.key(1)))
+    np.testing.assert_array_equal(r["eval1"], r["eval2"])
+    assert not np.allclose(r["train1"], r["train2"])
 
 
 def test_loss_metrics_and_l1_penalty():
     model = _tiny()
     x, c = _data(jax.random.key(0), 2, 16)
-    total, metrics = E.loss(model, {"pose": x, "control": c}, jax.random.key(1))
+    batch = {"pose": x, "control": c}
+
+    @jax.jit
+    def run(model):
+        (total, metrics), grads = jax.value_and_grad(
+            lambda m: E.loss(m, batch, jax.random.key(1)), has_aux=True
+        )(model)
+        return total, metrics, grads, l1_penalty(model)
+
+    total, metrics, grads, penalty = run(model)
     assert set(metrics) == {"nll", "kl", "neg_elbo", "l1"}
     np.testing.assert_allclose(metrics["neg_elbo"], metrics["nll"] + metrics["kl"], rtol=1e-5)
     expected = metrics["neg_elbo"] / POSE_DIM + 0.1 * metrics["l1"]
@@ -188,10 +235,8 @@ def test_loss_metrics_and_l1_penalty():
     kernels = [model.control_encoder.conv1, model.control_encoder.conv2,
                model.pose_encoder.conv1, model.pose_encoder.conv2, model.posterior_head,
                model.cell.from_s, model.cell.from_h, model.decoder.conv1, model.decoder.conv2]
-    manual = sum(float(jnp.abs(m.kernel[...]).mean()) for m in kernels)
-    np.testing.assert_allclose(l1_penalty(model), manual, rtol=1e-5)
-    grads = jax.grad(lambda m: E.loss(m, {"pose": x, "control": c}, jax.random.key(1))[0])(
-        model)
+    manual = sum(float(np.abs(np.asarray(m.kernel[...])).mean()) for m in kernels)
+    np.testing.assert_allclose(penalty, manual, rtol=1e-5)
     leaves = jax.tree_util.tree_leaves(nnx.state(grads, nnx.Param))
     assert all(bool(jnp.isfinite(g).all()) for g in leaves)
     assert float(jnp.abs(grads.out_log_std[...]).sum()) > 0.0  # the variance is learned

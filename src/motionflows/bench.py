@@ -79,7 +79,7 @@ SMOKE_TRAIN: dict[str, Any] = {
 
 SMOKE_OVERRIDES: dict[str, dict[str, Any]] = {
     "glow_fixed": {"levels": 2, "steps": 2, "hidden": 16},
-    "moglow": {},
+    "moglow": {"K": 2, "hidden": 16, "layers": 1},
     "vae_lstm": {
         "latent_dim": 16, "control_hidden": 8, "control_features": 16, "pose_hidden": 16,
         "pose_features": 32, "decoder_hidden": 16, "kernel": 5, "iwae_samples": (1, 10),
@@ -98,7 +98,7 @@ BUDGET_SIZES: dict[str, dict[str, int]] = {
     # quality, samples drawn for diversity, frames per GIF, bootstrap resamples,
     # prefix lengths for per-frame NLL of causal models
     "smoke": dict(eval_windows=32, train_windows=32, motion_windows=8, diversity=8,
-                  gif_frames=12, bootstrap=200, speed_repeats=1, prefix_points=3),
+                  gif_frames=12, bootstrap=200, speed_repeats=1, prefix_points=2),
     "quick": dict(eval_windows=512, train_windows=256, motion_windows=64, diversity=16,
                   gif_frames=80, bootstrap=1000, speed_repeats=3, prefix_points=10),
     "full": dict(eval_windows=100000, train_windows=1024, motion_windows=256, diversity=32,
@@ -414,7 +414,7 @@ def _standardized(dataset, windows, idx: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def score_likelihood(exp, model, config, dataset, split: str, *, limit: int, key,
-                     num_bootstrap: int, evaluate_fn=None) -> dict:
+                     num_bootstrap: int, evaluate_fn=None, chunk: int = EVAL_CHUNK) -> dict:
     """Likelihood table rows of one split: ``{scope: row}`` (see ``likelihood_rows``)."""
     from motionflows.evaluation.likelihood import likelihood_rows, scored_frames
 
@@ -424,7 +424,8 @@ def score_likelihood(exp, model, config, dataset, split: str, *, limit: int, key
         raise RunError(f"the {split} split has no complete windows; use more data or a "
                        "shorter window")
     pose, control = _standardized(dataset, windows, idx)
-    lls = _evaluate_windows(exp, model, pose, control, key=key, evaluate_fn=evaluate_fn)
+    lls = _evaluate_windows(exp, model, pose, control, key=key, evaluate_fn=evaluate_fn,
+                            chunk=chunk)
     scopes = getattr(exp, "SCOPES", {}) or {}
     if scopes:
         lls = {k: v for k, v in lls.items() if k in scopes}
@@ -435,10 +436,11 @@ def score_likelihood(exp, model, config, dataset, split: str, *, limit: int, key
     return {r["scope"]: r for r in rows}
 
 
-def _evaluate_windows(exp, model, pose, control, *, key, evaluate_fn=None):
+def _evaluate_windows(exp, model, pose, control, *, key, evaluate_fn=None,
+                      chunk: int = EVAL_CHUNK):
     from motionflows.evaluation.likelihood import evaluate_windows
 
-    return evaluate_windows(exp, model, pose, control, batch_size=EVAL_CHUNK, key=key,
+    return evaluate_windows(exp, model, pose, control, batch_size=chunk, key=key,
                             evaluate_fn=evaluate_fn)
 
 
@@ -457,7 +459,8 @@ def merge_splits(test: dict, train: dict) -> dict:
 
 
 def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: bool,
-                  evaluate_fn=None) -> dict:
+                  evaluate_fn=None, chunk: int = EVAL_CHUNK, window_scorer=None,
+                  full_window_mean: float | None = None) -> dict:
     """Test NLL (nats/frame, metres) against the frame position in the window.
 
     Exact in both routes used: the model's own per-frame log-densities (``frame_log_prob``,
@@ -496,8 +499,21 @@ def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: 
         return {"available": False, "method": "none"}
     ends = sorted(set(np.linspace(0, t_len, points + 1).round().astype(int).tolist()) - {0})
     totals = [0.0]
+    if window_scorer is not None:
+        import jax
+
+        scorer = jax.jit(window_scorer)
+
+        def window_fn(m, batch, k):
+            return {"window": scorer(m, batch["pose"], batch["control"])}
+
+        evaluate_fn = window_fn
     for end in ends:
-        lls = _evaluate_windows(exp, model, pose[:, :end], control[:, :end], key=key)
+        if end == t_len and full_window_mean is not None:
+            totals.append(float(full_window_mean))  # already scored on these windows
+            continue
+        lls = _evaluate_windows(exp, model, pose[:, :end], control[:, :end], key=key,
+                                evaluate_fn=evaluate_fn, chunk=chunk)
         totals.append(float(np.mean(lls["window"])))
     positions, nll = [], []
     starts = [0] + ends[:-1]
@@ -632,6 +648,13 @@ def train_speed(run_dir: Path) -> float | None:
 CAUSAL_MODELS = frozenset({"moglow", "gaussian", "linear_ar"})
 """Models whose score of frames 1..t ignores later frames (per-frame NLL by prefixes)."""
 
+WINDOW_SCORERS = {
+    # MoGlow's whole-window score alone (its evaluate() also scores the official scope, which
+    # needs more than tau frames, so it cannot score short prefixes)
+    "moglow": lambda model, pose, control: model.log_prob(pose, control, scope="window"),
+}
+"""model name -> (model, pose, control) -> (B,) window log-likelihood, for prefix scoring."""
+
 PER_FRAME_UNAVAILABLE = {
     "glow_fixed": "not available: the fixed-length Glow scores a window jointly "
     "(non-causal), so no per-frame split of its likelihood is exact",
@@ -691,9 +714,14 @@ class _Section:
         self.entry, self.key, self.strict, self.progress = entry, key, strict, progress
 
     def __enter__(self):
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
         return self
 
     def __exit__(self, kind, err, tb):
+        timings = self.entry.setdefault("timings", {})
+        name = self.key.replace("_error", "") if self.key != "error" else "train_and_likelihood"
+        timings[name] = {"wall_s": time.perf_counter() - self.t0,
+                         "cpu_s": time.process_time() - self.c0}
         if err is None or not isinstance(err, Exception):
             return False
         import traceback
@@ -732,20 +760,35 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
                      steps=int(config.train.steps))
         _, run_config, model, dataset = _load(run_dir, dataset)
         entry["params"] = count_params(model)
+        # the same jitted function and batch shape as the trainer's validation: one compile
         evaluate_fn = jax.jit(exp.evaluate)
+        tc = run_config.train
+        chunk = min(getattr(tc, "val_batch_size", None) or tc.batch_size or EVAL_CHUNK,
+                    len(complete_windows(dataset.test)), sizes["eval_windows"],
+                    len(complete_windows(dataset.train)), sizes["train_windows"])
         _log(progress, f"{name}: likelihood on test and train windows")
         test = score_likelihood(exp, model, run_config, dataset, "test",
                                 limit=sizes["eval_windows"], key=jax.random.fold_in(key, 1),
-                                num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn)
+                                num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn,
+                                chunk=chunk)
         train = score_likelihood(exp, model, run_config, dataset, "train",
                                  limit=sizes["train_windows"], key=jax.random.fold_in(key, 2),
-                                 num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn)
+                                 num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn,
+                                 chunk=chunk)
         window = int(np.asarray(dataset.test.pose).shape[1])
         entry["likelihood"] = merge_splits(test, train)
         for lik in entry["likelihood"].values():
             lik["frames_label"] = _frames_label(lik["test"], window)
         if likelihood_only:
             return entry
+        # mean log-likelihood (nats, standardised) of the scored test windows: the prefix
+        # route of per_frame_nll reuses it for the whole window
+        window_row = test.get("window")
+        full_mean = None
+        if window_row is not None:
+            n = window_row["scored_frames_per_window"]
+            full_mean = -(window_row["nats_per_frame_metres"]
+                          + float(dataset.standardizer.log_det_per_frame)) * n
         entry["speed"] = {"train_frames_per_s": train_speed(run_dir),
                           "fit_seconds": fit_seconds(run_dir)}
     if "error" in entry:
@@ -757,7 +800,9 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
         else:
             entry["per_frame_nll"] = per_frame_nll(
                 exp, model, dataset, limit=sizes["eval_windows"], key=jax.random.fold_in(key, 3),
-                points=sizes["prefix_points"], causal=name in CAUSAL_MODELS)
+                points=sizes["prefix_points"], causal=name in CAUSAL_MODELS,
+                evaluate_fn=evaluate_fn, chunk=chunk,
+                window_scorer=WINDOW_SCORERS.get(name), full_window_mean=full_mean)
 
     sampler = make_sampler(exp, temperature)
     with _Section(entry, "speed_error", strict, progress):
@@ -857,10 +902,11 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
 
 
 def render_gif(sample_m, reference_m, control_m, path: Path, fps: float, title: str) -> None:
-    """One GIF: the model's sample beside the ground truth for the same test control."""
+    """One GIF: the model's sample (solid) beside the ground truth (faded, shifted 1 m) for
+    the same test control, both moved along the trajectory integrated from that control."""
     from motionflows import render
 
-    render.animate(sample_m, path, compare=reference_m, fps=fps, title=title)
+    render.animate(sample_m, control_m, path, fps=fps, title=title, compare=reference_m)
 
 
 # --------------------------------------------------------------------------------------------
@@ -995,7 +1041,7 @@ def run_benchmark(
                 path = out / "gifs" / f"{name}.gif"
                 render_gif(s[0, :n_frames], gt_m[0, :n_frames], control_m[0, :n_frames], path,
                            float(data_cfg.fps),
-                           f"{name} (T={temperature:g}) | ground truth, test window 0")
+                           f"{name} sample (T={temperature:g}) | faded: ground truth")
                 plots["gifs"][name] = f"gifs/{name}.gif"
     results["plots"] = plots
     results["wall_seconds"] = time.perf_counter() - wall0

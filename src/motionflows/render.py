@@ -30,8 +30,9 @@ def _check(pose, control, what="pose") -> tuple[np.ndarray, np.ndarray]:
     if pose.ndim != 2 or pose.shape[1] != POSE_DIM:
         raise ValueError(f"{what} must be (T, {POSE_DIM}) metres, got {pose.shape}")
     if control.ndim != 2 or control.shape[1] != CONTROL_DIM or len(control) < len(pose):
-        raise ValueError(f"control must be (T, {CONTROL_DIM}) with T >= {len(pose)}, got "
-                         f"{control.shape}")
+        raise ValueError(
+            f"control must be (T, {CONTROL_DIM}) with T >= {len(pose)}, got {control.shape}"
+        )
     if not (np.isfinite(pose).all() and np.isfinite(control).all()):
         raise ValueError(f"{what} or control has non-finite values")
     if np.abs(pose).max() > 10:
@@ -54,38 +55,10 @@ def _draw_skeleton(ax, pts2d, alpha=1.0, lw=2.0):
             ax.plot(pts2d[[p, j], 0], pts2d[[p, j], 1], color=_COLORS[j], lw=lw, alpha=alpha)
 
 
-def _panels(fig, worlds, roots, t, title):
-    """Side view (following the root, looking along -x of the world) and top view."""
-    axes = fig.subplots(1, 2)
-    side, top = axes
-    centre = roots[0][t]
-    for k, w in enumerate(worlds):
-        alpha = 1.0 if k == 0 else _COMPARE_ALPHA
-        shift = 0.0 if k == 0 else 1.0
-        pts = np.stack([w[t, :, 2] - centre[2] + shift, w[t, :, 1]], -1)
-        _draw_skeleton(side, pts, alpha)
-        _draw_skeleton(top, w[t][:, [0, 2]], alpha, lw=1.2)
-    side.axhline(0.0, color="0.6", lw=1)
-    side.set_xlim(-1.2, 1.2 + (1.0 if len(worlds) > 1 else 0.0))
-    side.set_ylim(-0.05, 2.0)
-    side.set_aspect("equal")
-    side.set_title("side (z, y)" + ("  right: compare" if len(worlds) > 1 else ""),
-                   fontsize=8)
-    path = roots[0]
-    top.plot(path[:, 0], path[:, 2], color="0.5", lw=1)
-    top.plot(path[t, 0], path[t, 2], "o", color="tab:green", ms=4)
-    lo = path[:, [0, 2]].min(0) - 1.0
-    hi = path[:, [0, 2]].max(0) + 1.0
-    span = max(hi - lo) / 2
-    mid = (hi + lo) / 2
-    top.set_xlim(mid[0] - span, mid[0] + span)
-    top.set_ylim(mid[1] - span, mid[1] + span)
-    top.set_aspect("equal")
-    top.set_title("top (x, z), path from control", fontsize=8)
-    for ax in axes:
-        ax.tick_params(labelsize=6)
-    if title:
-        fig.suptitle(title, fontsize=9)
+def _side_points(pose_t: np.ndarray, shift: float = 0.0) -> np.ndarray:
+    """Side view in the character's own root frame: horizontal = forward (z), vertical = y."""
+    p = pose_t.reshape(NUM_JOINTS, 3)
+    return np.stack([p[:, 2] + shift, p[:, 1]], -1)
 
 
 def _world(pose, control):
@@ -99,39 +72,113 @@ def _rgb(fig) -> np.ndarray:
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-def animate(pose, control, path, *, fps: float = 20.0, title: str | None = None,
-            compare=None, max_fps: float = 20.0, dpi: int = 60) -> Path:
+class _Stage:
+    """One figure with side and top panels whose artists are updated per frame."""
+
+    def __init__(self, poses, worlds, root, title, dpi):
+        self.poses, self.worlds, self.root, self.title = poses, worlds, root, title
+        self.fig = _figure(2)
+        self.fig.set_dpi(dpi)
+        side, top = self.fig.subplots(1, 2)
+        two = len(poses) > 1
+        side.axhline(0.0, color="0.6", lw=1)
+        side.set_xlim(-1.2, 1.2 + (1.0 if two else 0.0))
+        side.set_ylim(-0.05, 2.0)
+        side.set_aspect("equal")
+        side.set_title(
+            "side, root frame (forward, up)" + (": right = compare" if two else ""), fontsize=8
+        )
+        top.plot(root[:, 0], root[:, 2], color="0.5", lw=1)
+        lo = root[:, [0, 2]].min(0) - 1.0
+        hi = root[:, [0, 2]].max(0) + 1.0
+        span, mid = max(hi - lo) / 2, (hi + lo) / 2
+        top.set_xlim(mid[0] + span, mid[0] - span)  # +x (left of a +z walker) drawn left
+        top.set_ylim(mid[1] - span, mid[1] + span)
+        top.set_aspect("equal")
+        top.set_title("top (x, z); path integrated from control", fontsize=8)
+        for ax in (side, top):
+            ax.tick_params(labelsize=6)
+        self.side_lines, self.top_lines = [], []
+        for k in range(len(poses)):
+            alpha = 1.0 if k == 0 else _COMPARE_ALPHA
+            self.side_lines.append(
+                [
+                    side.plot([], [], color=_COLORS[j], lw=2, alpha=alpha)[0]
+                    for j in range(NUM_JOINTS)
+                ]
+            )
+            self.top_lines.append(
+                [
+                    top.plot([], [], color=_COLORS[j], lw=1.2, alpha=alpha)[0]
+                    for j in range(NUM_JOINTS)
+                ]
+            )
+        (self.marker,) = top.plot([], [], "o", color="tab:green", ms=4)
+        self.suptitle = self.fig.suptitle("", fontsize=9)
+
+    def frame(self, t: int, fps: float) -> np.ndarray:
+        for k, (pose, world) in enumerate(zip(self.poses, self.worlds, strict=True)):
+            side = _side_points(pose[t], 1.0 if k else 0.0)
+            top = world[t][:, [0, 2]]
+            for j, p in enumerate(PARENTS):
+                if p >= 0:
+                    self.side_lines[k][j].set_data(side[[p, j], 0], side[[p, j], 1])
+                    self.top_lines[k][j].set_data(top[[p, j], 0], top[[p, j], 1])
+        self.marker.set_data([self.root[t, 0]], [self.root[t, 2]])
+        self.suptitle.set_text(f"{self.title or ''}  t={t / fps:.2f}s".strip())
+        return _rgb(self.fig)
+
+
+def animate(
+    pose,
+    control,
+    path,
+    *,
+    fps: float = 20.0,
+    title: str | None = None,
+    compare=None,
+    max_fps: float = 20.0,
+    dpi: int = 60,
+) -> Path:
     """Write a stick-figure GIF of pose (T, 63) metres driven by control (T, 3).
 
+    Left panel: the character in its root frame seen from its left side (forward to the
+    right). Right panel: top view of the world, path integrated from the control.
     ``compare``: an optional second pose sequence (T', 63) drawn beside (faded, shifted
-    1 m), integrated along the same control (e.g. ground truth vs sample).
+    1 m), moved along the same control (e.g. ground truth vs sample). Frames are
+    subsampled to at most ``max_fps``.
     """
     from PIL import Image
 
     pose, control = _check(pose, control)
-    worlds = [_world(pose, control)]
+    poses = [pose]
     if compare is not None:
-        cpose, ccontrol = _check(compare, control, "compare")
-        worlds.append(_world(cpose, ccontrol))
-    n = min(len(w[0]) for w in worlds)
+        poses.append(_check(compare, control, "compare")[0])
+    n = min(len(p) for p in poses)
+    worlds = [_world(p[:n], control[:n])[0] for p in poses]
+    root, _ = integrate_control(control[:n])
+    stage = _Stage([p[:n] for p in poses], worlds, root, title, dpi)
     step = max(1, int(np.ceil(fps / max_fps)))
-    frames = []
-    for t in range(0, n, step):
-        fig = _figure(2)
-        _panels(fig, [w[0] for w in worlds], [w[1] for w in worlds], t,
-                f"{title or ''}  t={t / fps:.2f}s".strip())
-        fig.set_dpi(dpi)
-        frames.append(Image.fromarray(_rgb(fig)).convert("P", palette=Image.ADAPTIVE,
-                                                          colors=32))
+    frames = [
+        Image.fromarray(stage.frame(t, fps)).convert("P", palette=Image.ADAPTIVE, colors=32)
+        for t in range(0, n, step)
+    ]
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    frames[0].save(out, save_all=True, append_images=frames[1:],
-                   duration=int(round(1000 * step / fps)), loop=0, optimize=True)
+    frames[0].save(
+        out,
+        save_all=True,
+        append_images=frames[1:],
+        duration=int(round(1000 * step / fps)),
+        loop=0,
+        optimize=True,
+    )
     return out
 
 
-def frame_grid(pose, control, path, *, n: int = 6, fps: float = 20.0,
-               title: str | None = None, dpi: int = 70) -> Path:
+def frame_grid(
+    pose, control, path, *, n: int = 6, fps: float = 20.0, title: str | None = None, dpi: int = 70
+) -> Path:
     """A PNG with ``n`` evenly spaced side views plus the top-view trajectory."""
     pose, control = _check(pose, control)
     world, root = _world(pose, control)
@@ -139,8 +186,7 @@ def frame_grid(pose, control, path, *, n: int = 6, fps: float = 20.0,
     fig = _figure(n + 1, width=2.0, height=3.0)
     axes = fig.subplots(1, n + 1)
     for ax, t in zip(axes[:-1], idx, strict=True):
-        pts = np.stack([world[t, :, 2] - root[t, 2], world[t, :, 1]], -1)
-        _draw_skeleton(ax, pts)
+        _draw_skeleton(ax, _side_points(pose[t]))
         ax.axhline(0.0, color="0.6", lw=1)
         ax.set_xlim(-1, 1)
         ax.set_ylim(-0.05, 2.0)
@@ -152,6 +198,7 @@ def frame_grid(pose, control, path, *, n: int = 6, fps: float = 20.0,
     for t in idx:
         _draw_skeleton(top, world[t][:, [0, 2]], lw=0.8)
     top.set_aspect("equal")
+    top.invert_xaxis()
     top.set_title("top (x, z)", fontsize=7)
     top.tick_params(labelsize=5)
     if title:
@@ -170,8 +217,11 @@ def plot_controls(control, path, fps: float = 20.0, *, title: str | None = None)
     t = np.arange(len(control)) / fps
     fig = _figure(1, width=6.0, height=4.0)
     axes = fig.subplots(3, 1, sharex=True)
-    series = [(control[:, 0] * fps, "forward (m/s)"), (control[:, 1] * fps, "sideways (m/s, +left)"),
-              (np.degrees(control[:, 2]) * fps, "turn (deg/s, +left)")]  # fmt: skip
+    series = [
+        (control[:, 0] * fps, "forward (m/s)"),
+        (control[:, 1] * fps, "sideways (m/s, +left)"),
+        (np.degrees(control[:, 2]) * fps, "turn (deg/s, +left)"),
+    ]
     for ax, (y, label) in zip(axes, series, strict=True):
         ax.plot(t, y, lw=1.2)
         ax.axhline(0, color="0.7", lw=0.8)
@@ -191,10 +241,17 @@ def render_clip(clip: Clip, out_dir: str | os.PathLike, *, compare=None) -> dict
     out = Path(out_dir)
     name = clip.name.replace(os.sep, "_")
     return {
-        "gif": animate(clip.pose, clip.control, out / f"{name}.gif", fps=clip.fps,
-                       title=clip.name, compare=compare),
-        "controls": plot_controls(clip.control, out / f"{name}_controls.png", clip.fps,
-                                  title=clip.name),
+        "gif": animate(
+            clip.pose,
+            clip.control,
+            out / f"{name}.gif",
+            fps=clip.fps,
+            title=clip.name,
+            compare=compare,
+        ),
+        "controls": plot_controls(
+            clip.control, out / f"{name}_controls.png", clip.fps, title=clip.name
+        ),
     }
 
 

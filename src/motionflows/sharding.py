@@ -74,7 +74,8 @@ def check_batch_size(batch_size: int, mesh: Mesh) -> None:
     if batch_size % n:
         raise ValueError(
             f"train.batch_size={batch_size} is not divisible by the {n} devices of the data "
-            f"mesh; use a multiple of {n} (e.g. --set train.batch_size={n * max(1, batch_size // n)})"
+            f"mesh; use a multiple of {n}, e.g. --set train.batch_size="
+            f"{n * max(1, batch_size // n)}"
         )
 
 

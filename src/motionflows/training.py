@@ -60,6 +60,7 @@ from motionflows.sharding import check_batch_size, data_mesh, replicate, shard_b
 
 __all__ = [
     "TrainResult",
+    "draw_samples",
     "evaluate_run",
     "experiment_main",
     "gradient_clipping",
@@ -71,6 +72,7 @@ __all__ = [
     "make_train_step",
     "train",
     "validate",
+    "validation_windows",
 ]
 
 warnings.filterwarnings("ignore", message="Some donated buffers were not usable")
@@ -182,37 +184,44 @@ def _keys(seed: int) -> dict[str, jax.Array]:
     return dict(zip(names, jax.random.split(base, len(names)), strict=True))
 
 
-def _window(batch: dict) -> int:
-    return int(np.shape(batch["pose"])[1])
+def _main_key(lls: dict, scopes: dict | None = None) -> str:
+    """The score behind ``val_nll``: "window", else the first of the module's SCOPES."""
+    if "window" in lls:
+        return "window"
+    return next((k for k in (scopes or {}) if k in lls), next(iter(lls)))
 
 
-def _main_key(lls: dict) -> str:
-    return "window" if "window" in lls else next(iter(lls))
+def validation_windows(config: Any, dataset: Any, split: str = "val"):
+    """The fixed validation subset: ``train.eval_batches * batch`` complete windows of
+    ``split`` drawn once with seed 0 (all of them if the split is smaller), standardised."""
+    tc = config.train
+    bs = tc.val_batch_size or tc.batch_size
+    pose, control = _split_windows(dataset, split)
+    limit = max(1, tc.eval_batches) * bs
+    if len(pose) > limit:
+        idx = np.sort(np.random.default_rng(0).permutation(len(pose))[:limit])
+        pose, control = pose[idx], control[idx]
+    return pose, control
 
 
 def validate(module: Any, config: Any, model: Any, dataset: Any, *, key: jax.Array,
-             evaluate_fn: Any = None, split: str = "val") -> dict[str, float]:
-    """Validation NLL on ``train.eval_batches`` batches of ``split``: ``val_nll`` (nats/frame,
-    metres) and ``val_bits`` (bits/frame, standardised) of the ``window`` scope (or the
-    first scope), plus ``val_<scope>_nll`` for every scope."""
+             evaluate_fn: Any = None, split: str = "val", windows: Any = None) -> dict:
+    """Validation NLL on :func:`validation_windows`: ``val_nll`` (nats/frame, metres) and
+    ``val_bits`` (bits/frame, standardised) of the ``window`` scope (or the first scope),
+    plus ``val_<scope>_nll`` for every scope."""
     tc = config.train
-    bs = tc.val_batch_size or tc.batch_size
-    fn = evaluate_fn or jax.jit(module.evaluate)
-    lls: dict[str, list] = {}
-    window = None
-    for i in range(max(1, tc.eval_batches)):
-        batch = dataset.batch(split, bs, seed=0, index=i)
-        window = _window(batch)
-        res = fn(model, batch, jax.random.fold_in(key, i))
-        for k, v in res.items():
-            lls.setdefault(k, []).append(np.asarray(v, np.float64))
+    pose, control = windows if windows is not None else validation_windows(config, dataset,
+                                                                           split)
+    lls = likelihood.evaluate_windows(module, model, pose, control,
+                                      batch_size=tc.val_batch_size or tc.batch_size,
+                                      key=key, evaluate_fn=evaluate_fn)
+    window = pose.shape[1]
     ldpf = float(dataset.standardizer.log_det_per_frame)
     out = {}
-    for k, parts in lls.items():
-        ll = np.concatenate(parts)
+    for k, ll in lls.items():
         n = likelihood.scored_frames(getattr(module, "SCOPES", {}), k, window, config)
         out[f"val_{k}_nll"] = float(np.mean(likelihood.nats_per_frame_metres(ll, n, ldpf)))
-        if k == _main_key(lls):
+        if k == _main_key(lls, getattr(module, "SCOPES", {})):
             out["val_nll"] = out[f"val_{k}_nll"]
             out["val_bits"] = float(np.mean(likelihood.bits_per_frame_standardized(ll, n)))
     return out
@@ -385,6 +394,7 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
                 "skipped": int(guard["skipped"]), **(extra or {})}
         ckpt.save(step, {"params": params, "rest": rest, "opt": opt_state}, meta, which=which)
 
+    val_windows = validation_windows(config, dataset)
     bar = runs.Progress(tc.steps, start, enabled=progress)
     pending: list = []
     t_log, step_log = time.perf_counter(), start
@@ -434,13 +444,14 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
                     break
             if done % tc.eval_every == 0 or done == tc.steps:
                 val = validate(module, config, current_model(), dataset, key=keys["eval"],
-                               evaluate_fn=eval_fn)
+                               evaluate_fn=eval_fn, windows=val_windows)
                 if _primary():
-                    runs.append_metrics(run_dir, {"step": done, **val})
+                    runs.append_metrics(run_dir, {"step": done,
+                                                  **{k: _scalar(v) for k, v in val.items()}})
                     if time.perf_counter() - t_plot > 60.0:  # plotting costs ~1 s
                         runs.plot_losses(run_dir)
                         t_plot = time.perf_counter()
-                if best is None or val["val_nll"] < best:
+                if math.isfinite(val["val_nll"]) and (best is None or val["val_nll"] < best):
                     best = val["val_nll"]
                     save(done, "best", val)
             if done % tc.checkpoint_every == 0 or done == tc.steps:
@@ -580,6 +591,28 @@ def evaluate_run(run_dir: str | Path, split: str = "test", *, checkpoint: str = 
             rows, title=f"{module.NAME} — {split} split, {pose.shape[0]} windows of {window} "
                         f"frames ({Path(run_dir)})"))
     return rows
+
+
+def draw_samples(module: Any, model: Any, standardizer: Any, control: np.ndarray, *,
+                 num: int = 1, temperature: float = 1.0, seed: int = 0) -> np.ndarray:
+    """Sample ``num`` pose sequences (num, T, 63) in metres for one control (T, 3) given
+    in data units (m/frame, rad/frame): standardise, one jitted ``module.sample``,
+    de-standardise. Raises ``RunError`` if the samples hold NaN/inf."""
+    control = np.asarray(control, np.float32)
+    if control.ndim != 2:
+        raise ValueError(f"control must be (T, 3), got {control.shape}")
+    c_std = np.asarray(standardizer.normalize_control(control), np.float32)
+    c_std = np.ascontiguousarray(np.broadcast_to(c_std, (num, *c_std.shape)))
+    temperature = float(temperature)
+
+    @jax.jit
+    def draw(model, control, key):
+        return module.sample(model, control, key, temperature=temperature)
+
+    pose_std = np.asarray(draw(model, c_std, jax.random.key(seed)))
+    if not np.all(np.isfinite(pose_std)):
+        raise RunError("the sampled poses hold NaN/inf; try a lower temperature")
+    return np.asarray(standardizer.denormalize_pose(pose_std), np.float32)
 
 
 # ------------------------------------------------------------------------ command line

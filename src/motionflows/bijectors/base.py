@@ -239,6 +239,20 @@ def _as_key(rngs: Any) -> Array:
     return rngs
 
 
+# Module-level scan bodies (the context rides along unchanged in the carry): a stable
+# function identity lets JAX reuse the traced scan across eager calls.
+def _forward_body(carry, step):
+    h, total, context = carry
+    h, ld = step.forward_and_log_det(h, context=context)
+    return (h, total + ld, context), None
+
+
+def _inverse_body(carry, step):
+    h, total, context = carry
+    h, ld = step.inverse_and_log_det(h, context=context)
+    return (h, total + ld, context), None
+
+
 class Scan(Bijector):
     """K identical steps with stacked parameters, run by ``jax.lax.scan``.
 
@@ -333,24 +347,18 @@ class Scan(Bijector):
         if is_initializing():
             return self.unrolled().forward_and_log_det(x, context=context)
 
-        def body(carry, step):
-            h, total = carry
-            h, ld = step.forward_and_log_det(h, context=context)
-            return (h, total + ld), None
-
-        (x, total), _ = jax.lax.scan(body, (x, _zeros_batch(x)), self.steps)
+        (x, total, _), _ = jax.lax.scan(
+            _forward_body, (x, _zeros_batch(x), context), self.steps
+        )
         return x, total
 
     def inverse_and_log_det(self, y, *, context=None):
         if is_initializing():
             return self._inverse_init(y, context)
 
-        def body(carry, step):
-            h, total = carry
-            h, ld = step.inverse_and_log_det(h, context=context)
-            return (h, total + ld), None
-
-        (y, total), _ = jax.lax.scan(body, (y, _zeros_batch(y)), self.steps, reverse=True)
+        (y, total, _), _ = jax.lax.scan(
+            _inverse_body, (y, _zeros_batch(y), context), self.steps, reverse=True
+        )
         return y, total
 
     def _inverse_init(self, y, context):

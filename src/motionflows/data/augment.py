@@ -54,14 +54,20 @@ def reverse_time(pose: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def mirror_clip(clip: Clip) -> Clip:
-    return Clip(mirror_pose(clip.pose), mirror_control(clip.control), clip.fps,
-                clip.name, dict(clip.meta, mirrored=not clip.meta.get("mirrored", False)))
+    return Clip(
+        mirror_pose(clip.pose),
+        mirror_control(clip.control),
+        clip.fps,
+        clip.name,
+        dict(clip.meta, mirrored=not clip.meta.get("mirrored", False)),
+    )
 
 
 def reverse_clip(clip: Clip) -> Clip:
     p, c = reverse_time(clip.pose, clip.control)
-    return Clip(p, c, clip.fps, clip.name,
-                dict(clip.meta, reversed=not clip.meta.get("reversed", False)))
+    return Clip(
+        p, c, clip.fps, clip.name, dict(clip.meta, reversed=not clip.meta.get("reversed", False))
+    )
 
 
 def augment_clips(clips: list[Clip], *, mirror: bool, reverse: bool) -> list[Clip]:

@@ -215,8 +215,9 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
     parse_joint(-1, False)
     if pos < n_tok:
         tok, ln = tokens[pos]
-        raise _err(f"unexpected {tok!r} after the root joint (only one ROOT is supported)",
-                   path, ln)
+        raise _err(
+            f"unexpected {tok!r} after the root joint (only one ROOT is supported)", path, ln
+        )
     if len(set(names)) != len(names):
         raise _err("joint names are not unique", path, tokens[0][1])
 
@@ -289,8 +290,9 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
                 try:
                     float(v)
                 except ValueError:
-                    raise _err(f"non-numeric value {v!r} in frame {k}", path,
-                               line_numbers[k]) from None
+                    raise _err(
+                        f"non-numeric value {v!r} in frame {k}", path, line_numbers[k]
+                    ) from None
         raise  # pragma: no cover
     motion = motion.reshape(n_frames, n_chan)
     finite = np.isfinite(motion)

@@ -93,8 +93,9 @@ def validate_control(control, *, path: str | None = None) -> np.ndarray:
     return arr.astype(np.float32)
 
 
-def load_control(path_or_name: str | os.PathLike, seconds: float | None = None,
-                 fps: float = DEFAULT_FPS) -> np.ndarray:
+def load_control(
+    path_or_name: str | os.PathLike, seconds: float | None = None, fps: float = DEFAULT_FPS
+) -> np.ndarray:
     """A preset name (needs ``seconds``) or a ``.npy`` file holding a (T, 3) array.
 
     With a file and ``seconds`` given, the control is cut or repeated-last-frame padded to
@@ -107,8 +108,9 @@ def load_control(path_or_name: str | os.PathLike, seconds: float | None = None,
         return preset(text, seconds, fps)
     p = Path(text)
     if p.suffix != ".npy":
-        raise ValueError(f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a "
-                         ".npy file")
+        raise ValueError(
+            f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a .npy file"
+        )
     if not p.exists():
         raise ValueError(f"control file {p} not found")
     try:

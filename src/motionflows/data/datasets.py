@@ -85,6 +85,15 @@ def cache_dir(path: str | os.PathLike | None = None) -> Path:
     return Path(env) if env else Path.home() / ".cache" / "motionflows"
 
 
+def _code_version() -> str:
+    """PIPELINE_VERSION plus a hash of the feature code, so cached clips follow code edits."""
+    here = Path(__file__).parent
+    h = hashlib.sha1(PIPELINE_VERSION.encode())
+    for name in ("bvh.py", "skeleton.py", "features.py", "synthetic.py"):
+        h.update((here / name).read_bytes())
+    return h.hexdigest()[:12]
+
+
 def _hash(obj) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -113,8 +122,7 @@ def _load_clips(path: Path) -> list[Clip]:
     pose, control = arrays["pose"], arrays["control"]
     return [
         Clip(pose[s:e], control[s:e], float(f), str(n), m)
-        for s, e, f, n, m in zip(starts, ends, arrays["fps"], arrays["names"], metas,
-                                 strict=True)
+        for s, e, f, n, m in zip(starts, ends, arrays["fps"], arrays["names"], metas, strict=True)
     ]
 
 
@@ -136,6 +144,19 @@ def _cached(key: dict, build, *, cache: bool, directory) -> tuple[list[Clip], st
     return clips, str(path)
 
 
+def _folder_manifest(folder: Path) -> dict[str, dict]:
+    """Rows of ``folder/manifest.csv`` by file name (columns ``file`` and optionally
+    ``content``, ``style``, ``performer_proxy`` or ``performer``, ``dataset``, ``take``)."""
+    path = folder / "manifest.csv"
+    if not path.is_file():
+        return {}
+    try:
+        rows = bandai_manifest(path)
+    except (OSError, csv.Error, UnicodeDecodeError) as err:
+        raise MotionDataError(f"cannot read the manifest ({err})", path=str(path)) from None
+    return {r["file"]: r for r in rows if r.get("file")}
+
+
 def _bvh_files(folder: Path) -> list[Path]:
     files = sorted(p for p in folder.rglob("*") if p.suffix.lower() == ".bvh" and p.is_file())
     if not files:
@@ -149,10 +170,15 @@ def _file_key(files: list[Path]) -> list:
 
 def _bandai_meta(name: str, manifest: dict[str, dict]) -> dict:
     row = manifest.get(name + ".bvh")
-    if row is not None:
-        return {"source": "bandai", "dataset": row["dataset"], "content": row["content"],
-                "style": row["style"], "take": row["take"],
-                "performer": row["performer_proxy"]}  # fmt: skip
+    if row is not None and row.get("content"):
+        return {
+            "source": "bandai",
+            "dataset": row.get("dataset", ""),
+            "content": row["content"],
+            "style": row.get("style", ""),
+            "take": row.get("take", ""),
+            "performer": row.get("performer_proxy") or row.get("performer") or "unknown",
+        }  # fmt: skip
     parts = name.split("_")
     meta = {"source": "bandai", "performer": "unknown"}
     if len(parts) >= 4:
@@ -170,13 +196,18 @@ def _bvh_clips(files, fps, skeleton, source, meta_fn) -> list[Clip]:
     return [clip_from_bvh(f, fps, skeleton, meta=meta_fn(f.stem)) for f in files]
 
 
-def _split_names(clips: list[Clip], split_by: str, val_frac: float, test_frac: float,
-                 val_performers=None, test_performers=None) -> dict[str, list[str]]:
+def _split_names(
+    clips: list[Clip],
+    split_by: str,
+    val_frac: float,
+    test_frac: float,
+    val_performers=None,
+    test_performers=None,
+) -> dict[str, list[str]]:
     def by_take(names_groups: dict[str, list[str]]) -> dict[str, list[str]]:
         out = {s: [] for s in SPLITS}
         for group in sorted(names_groups):
-            names = sorted(names_groups[group],
-                           key=lambda n: hashlib.sha1(n.encode()).hexdigest())
+            names = sorted(names_groups[group], key=lambda n: hashlib.sha1(n.encode()).hexdigest())
             n = len(names)
             n_test = int(round(n * test_frac))
             n_val = int(round(n * val_frac))
@@ -233,8 +264,13 @@ class MotionDataset:
       info: dict with source, fps, window, hop, takes / windows per split, frames used...
     """
 
-    def __init__(self, splits: dict[str, WindowSet], standardizer: Standardizer, info: dict,
-                 clips: dict[str, list[Clip]] | None = None):
+    def __init__(
+        self,
+        splits: dict[str, WindowSet],
+        standardizer: Standardizer,
+        info: dict,
+        clips: dict[str, list[Clip]] | None = None,
+    ):
         self._splits = splits
         self.standardizer = standardizer
         self.info = info
@@ -272,9 +308,17 @@ class MotionDataset:
         drop = (split == "train") if drop_last is None else drop_last
         return batches_per_epoch(len(self.split(split)), batch_size, drop_last=drop)
 
-    def batch(self, split: str, batch_size: int, *, seed: int, index: int,
-              standardized: bool = True, shuffle: bool = True,
-              drop_last: bool | None = None) -> dict[str, np.ndarray]:
+    def batch(
+        self,
+        split: str,
+        batch_size: int,
+        *,
+        seed: int,
+        index: int,
+        standardized: bool = True,
+        shuffle: bool = True,
+        drop_last: bool | None = None,
+    ) -> dict[str, np.ndarray]:
         """Batch number ``index`` of a seeded stream: {"pose": (B, T, 63), "control"}.
 
         Deterministic in (seed, index): epoch = index // batches_per_epoch and the order is
@@ -283,26 +327,60 @@ class MotionDataset:
         """
         drop = (split == "train") if drop_last is None else drop_last
         data = self.arrays(split, standardized=standardized)
-        idx = batch_indices(len(data["pose"]), batch_size, seed=seed, index=index,
-                            shuffle=shuffle, drop_last=drop, salt=SPLITS.index(split))
+        idx = batch_indices(
+            len(data["pose"]),
+            batch_size,
+            seed=seed,
+            index=index,
+            shuffle=shuffle,
+            drop_last=drop,
+            salt=SPLITS.index(split),
+        )
         return {"pose": data["pose"][idx], "control": data["control"][idx]}
 
-    def batches(self, split: str, batch_size: int, *, seed: int, start: int = 0,
-                shuffle: bool = True, drop_last: bool = True, epochs: int | None = None,
-                standardized: bool = True) -> Iterator[dict[str, np.ndarray]]:
+    def batches(
+        self,
+        split: str,
+        batch_size: int,
+        *,
+        seed: int,
+        start: int = 0,
+        shuffle: bool = True,
+        drop_last: bool = True,
+        epochs: int | None = None,
+        standardized: bool = True,
+    ) -> Iterator[dict[str, np.ndarray]]:
         """Iterate :meth:`batch` from index ``start``; ``epochs=None`` runs forever."""
         per_epoch = self.batches_per_epoch(split, batch_size, drop_last=drop_last)
         stop = None if epochs is None else epochs * per_epoch
         i = start
         while stop is None or i < stop:
-            yield self.batch(split, batch_size, seed=seed, index=i, standardized=standardized,
-                             shuffle=shuffle, drop_last=drop_last)
+            yield self.batch(
+                split,
+                batch_size,
+                seed=seed,
+                index=i,
+                standardized=standardized,
+                shuffle=shuffle,
+                drop_last=drop_last,
+            )
             i += 1
 
 
-def load_clips(name: str, *, path=None, skeleton="bandai", fps: float = DEFAULT_FPS,
-               n_clips: int = 120, seconds: float = 12.0, seed: int = 0, contents=None,
-               cache: bool = True, cache_dir=None, **_ignored) -> tuple[list[Clip], dict]:
+def load_clips(
+    name: str,
+    *,
+    path=None,
+    skeleton="bandai",
+    fps: float = DEFAULT_FPS,
+    n_clips: int = 120,
+    seconds: float = 12.0,
+    seed: int = 0,
+    contents=None,
+    cache: bool = True,
+    cache_dir=None,
+    **_ignored,
+) -> tuple[list[Clip], dict]:
     """The clips of a source (cached), and info about where they came from."""
     if name not in SOURCES:
         raise ValueError(f"unknown dataset {name!r}; valid: {', '.join(SOURCES)}")
@@ -311,9 +389,13 @@ def load_clips(name: str, *, path=None, skeleton="bandai", fps: float = DEFAULT_
         from motionflows.data import synthetic
 
         key = {"source": name, "n_clips": int(n_clips), "seconds": float(seconds),
-               "seed": int(seed), "fps": fps, "v": PIPELINE_VERSION}  # fmt: skip
-        clips, cfile = _cached(key, lambda: synthetic.generate(n_clips, seconds, seed, fps=fps),
-                               cache=cache, directory=cache_dir)
+               "seed": int(seed), "fps": fps, "v": _code_version()}  # fmt: skip
+        clips, cfile = _cached(
+            key,
+            lambda: synthetic.generate(n_clips, seconds, seed, fps=fps),
+            cache=cache,
+            directory=cache_dir,
+        )
         return clips, {"cache_file": cfile}
     if name == "bandai":
         folder = Path(path) if path else default_bandai_dir()
@@ -322,6 +404,7 @@ def load_clips(name: str, *, path=None, skeleton="bandai", fps: float = DEFAULT_
             raise MotionDataError(f"Bandai data folder not found: {where}; " + _DOWNLOAD_HINT)
         mapping = get_skeleton("bandai")
         manifest = {r["file"]: r for r in bandai_manifest()}
+        manifest.update(_folder_manifest(folder))
 
         def meta_fn(stem):
             return _bandai_meta(stem, manifest)
@@ -332,9 +415,17 @@ def load_clips(name: str, *, path=None, skeleton="bandai", fps: float = DEFAULT_
         if not folder.is_dir():
             raise MotionDataError("BVH folder not found", path=str(folder))
         mapping = get_skeleton(skeleton)
+        local = _folder_manifest(folder)
 
         def meta_fn(stem):
-            return {"source": "bvh", "performer": "unknown", "content": ""}
+            row = local.get(stem + ".bvh", {})
+            return {
+                "source": "bvh",
+                "performer": row.get("performer_proxy") or row.get("performer") or "unknown",
+                "content": row.get("content", ""),
+                "style": row.get("style", ""),
+            }
+
     files = _bvh_files(folder)
     if contents:
         wanted = {contents} if isinstance(contents, str) else set(contents)
@@ -342,20 +433,42 @@ def load_clips(name: str, *, path=None, skeleton="bandai", fps: float = DEFAULT_
         if not files:
             raise MotionDataError(f"no files with content in {sorted(wanted)}", path=str(folder))
     key = {"source": name, "files": _file_key(files), "folder": str(folder.resolve()),
-           "fps": fps, "skeleton": mapping.to_dict(), "v": PIPELINE_VERSION}  # fmt: skip
-    clips, cfile = _cached(key, lambda: _bvh_clips(files, fps, mapping, name, meta_fn),
-                           cache=cache, directory=cache_dir)
+           "fps": fps, "skeleton": mapping.to_dict(), "v": _code_version(),
+           "meta": _hash([meta_fn(f.stem) for f in files])}  # fmt: skip
+    clips, cfile = _cached(
+        key,
+        lambda: _bvh_clips(files, fps, mapping, name, meta_fn),
+        cache=cache,
+        directory=cache_dir,
+    )
     return clips, {"cache_file": cfile, "path": str(folder)}
 
 
-def load_dataset(name: str = "synthetic", *, path=None, skeleton="bandai",
-                 fps: float = DEFAULT_FPS, window: int = DEFAULT_WINDOW, hop: int = 10,
-                 split_by: str = "take", mirror: bool = True, reverse: bool = False,
-                 n_clips: int = 120, seconds: float = 12.0, seed: int = 0,
-                 val_frac: float = 0.1, test_frac: float = 0.1, val_performers=None,
-                 test_performers=None, short: str = "pad", min_frames: int | None = None,
-                 contents=None, cache: bool = True, cache_dir=None,
-                 **extra) -> MotionDataset:
+def load_dataset(
+    name: str = "synthetic",
+    *,
+    path=None,
+    skeleton="bandai",
+    fps: float = DEFAULT_FPS,
+    window: int = DEFAULT_WINDOW,
+    hop: int = 10,
+    split_by: str = "take",
+    mirror: bool = True,
+    reverse: bool = False,
+    n_clips: int = 120,
+    seconds: float = 12.0,
+    seed: int = 0,
+    val_frac: float = 0.1,
+    test_frac: float = 0.1,
+    val_performers=None,
+    test_performers=None,
+    short: str = "pad",
+    min_frames: int | None = None,
+    contents=None,
+    cache: bool = True,
+    cache_dir=None,
+    **extra,
+) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
 
     >>> ds = load_dataset("synthetic")                 # no download
@@ -370,14 +483,21 @@ def load_dataset(name: str = "synthetic", *, path=None, skeleton="bandai",
     if not (0 <= val_frac < 1 and 0 <= test_frac < 1 and val_frac + test_frac < 1):
         raise ValueError("val_frac and test_frac must be in [0, 1) with a sum below 1")
     clips, source_info = load_clips(
-        name, path=path, skeleton=skeleton, fps=fps, n_clips=n_clips, seconds=seconds,
-        seed=seed, contents=contents, cache=cache, cache_dir=cache_dir,
+        name,
+        path=path,
+        skeleton=skeleton,
+        fps=fps,
+        n_clips=n_clips,
+        seconds=seconds,
+        seed=seed,
+        contents=contents,
+        cache=cache,
+        cache_dir=cache_dir,
     )
     names = [c.name for c in clips]
     if len(set(names)) != len(names):
         raise MotionDataError("take names are not unique; rename the duplicate files")
-    assignment = _split_names(clips, split_by, val_frac, test_frac, val_performers,
-                              test_performers)
+    assignment = _split_names(clips, split_by, val_frac, test_frac, val_performers, test_performers)
     by_name = {c.name: c for c in clips}
     split_clips = {s: [by_name[n] for n in sorted(assignment[s])] for s in SPLITS}
     splits, stats = {}, {}
@@ -385,8 +505,9 @@ def load_dataset(name: str = "synthetic", *, path=None, skeleton="bandai",
         cs = split_clips[s]
         if s == "train":
             cs = augment_clips(cs, mirror=mirror, reverse=reverse)
-        splits[s], stats[s] = make_windows(cs, int(window), int(hop), short=short,
-                                           min_frames=min_frames)
+        splits[s], stats[s] = make_windows(
+            cs, int(window), int(hop), short=short, min_frames=min_frames
+        )
     if len(splits["train"]) == 0:
         raise MotionDataError(
             f"no training windows: the takes are shorter than window={window} frames; use a "
@@ -394,10 +515,13 @@ def load_dataset(name: str = "synthetic", *, path=None, skeleton="bandai",
         )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     if dropped:
-        warnings.warn(f"{len(dropped)} take(s) shorter than the minimum were dropped: "
-                      f"{dropped[:5]}", stacklevel=2)
-    standardizer = Standardizer.fit(splits["train"].pose, splits["train"].control,
-                                    valid=splits["train"].valid)
+        warnings.warn(
+            f"{len(dropped)} take(s) shorter than the minimum were dropped: {dropped[:5]}",
+            stacklevel=2,
+        )
+    standardizer = Standardizer.fit(
+        splits["train"].pose, splits["train"].control, valid=splits["train"].valid
+    )
     info = {
         "source": name,
         "fps": float(fps),
@@ -411,8 +535,9 @@ def load_dataset(name: str = "synthetic", *, path=None, skeleton="bandai",
         "frames_used": {s: stats[s]["frames_used"] for s in SPLITS},
         "padded_windows": {s: stats[s]["padded_windows"] for s in SPLITS},
         "dropped_takes": dropped,
-        "performers": {s: sorted({str(c.meta.get("performer")) for c in split_clips[s]})
-                       for s in SPLITS},
+        "performers": {
+            s: sorted({str(c.meta.get("performer")) for c in split_clips[s]}) for s in SPLITS
+        },
         "seconds": sum(len(c) for c in clips) / float(fps),
         **source_info,
     }

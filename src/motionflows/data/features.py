@@ -258,6 +258,4 @@ def clip_from_bvh(
     p = Path(path)
     info = {"file": str(p), "skeleton": mapping.name, "src_frames": bvh.num_frames}
     info.update(meta or {})
-    return features_from_positions(
-        world, bvh.fps, fps, name=name or p.stem, meta=info, path=str(p)
-    )
+    return features_from_positions(world, bvh.fps, fps, name=name or p.stem, meta=info, path=str(p))

@@ -81,8 +81,9 @@ def make_windows(
         elif n >= min_frames and short == "pad":
             pad = window - n
             poses.append(np.concatenate([clip.pose, np.repeat(clip.pose[-1:], pad, 0)]))
-            controls.append(np.concatenate([clip.control, np.zeros((pad, CONTROL_DIM),
-                                                                   np.float32)]))
+            controls.append(
+                np.concatenate([clip.control, np.zeros((pad, CONTROL_DIM), np.float32)])
+            )
             takes.append(clip.name)
             starts.append(0)
             valids.append(np.arange(window) < n)
@@ -120,12 +121,15 @@ class Standardizer:
     control_std: np.ndarray
 
     def __post_init__(self):
-        for name, dim in (("pose_mean", POSE_DIM), ("pose_std", POSE_DIM),
-                          ("control_mean", CONTROL_DIM), ("control_std", CONTROL_DIM)):
+        for name, dim in (
+            ("pose_mean", POSE_DIM),
+            ("pose_std", POSE_DIM),
+            ("control_mean", CONTROL_DIM),
+            ("control_std", CONTROL_DIM),
+        ):
             value = np.asarray(getattr(self, name), dtype=np.float32)
             if value.shape != (dim,):
-                raise ValueError(f"Standardizer.{name} must have shape ({dim},), got "
-                                 f"{value.shape}")
+                raise ValueError(f"Standardizer.{name} must have shape ({dim},), got {value.shape}")
             if not np.isfinite(value).all():
                 raise ValueError(f"Standardizer.{name} has non-finite values")
             setattr(self, name, value)
@@ -133,8 +137,15 @@ class Standardizer:
             raise ValueError("Standardizer stds must be positive")
 
     @classmethod
-    def fit(cls, pose: np.ndarray, control: np.ndarray, *, valid: np.ndarray | None = None,
-            pose_floor: float = 1e-3, control_floor: float = 1e-4) -> Standardizer:
+    def fit(
+        cls,
+        pose: np.ndarray,
+        control: np.ndarray,
+        *,
+        valid: np.ndarray | None = None,
+        pose_floor: float = 1e-3,
+        control_floor: float = 1e-4,
+    ) -> Standardizer:
         """Fit on windows pose (N, T, 63) / control (N, T, 3) (only ``valid`` frames).
 
         Floors: ``std >= pose_floor`` metres and ``std >= control_floor``.
@@ -146,8 +157,12 @@ class Standardizer:
             p, c = p[v], c[v]
         if p.shape[0] < 2:
             raise ValueError("cannot fit a Standardizer on fewer than 2 frames")
-        return cls(p.mean(0), np.maximum(p.std(0), pose_floor),
-                   c.mean(0), np.maximum(c.std(0), control_floor))
+        return cls(
+            p.mean(0),
+            np.maximum(p.std(0), pose_floor),
+            c.mean(0),
+            np.maximum(c.std(0), control_floor),
+        )
 
     @property
     def log_det_per_frame(self) -> float:
@@ -166,17 +181,31 @@ class Standardizer:
         return z * self.control_std + self.control_mean
 
     def to_dict(self) -> dict:
-        return {k: [float(v) for v in getattr(self, k)]
-                for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+        return {
+            k: [float(v) for v in getattr(self, k)]
+            for k in ("pose_mean", "pose_std", "control_mean", "control_std")
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> Standardizer:
-        return cls(**{k: np.asarray(d[k], np.float32)
-                      for k in ("pose_mean", "pose_std", "control_mean", "control_std")})
+        return cls(
+            **{
+                k: np.asarray(d[k], np.float32)
+                for k in ("pose_mean", "pose_std", "control_mean", "control_std")
+            }
+        )
 
 
-def batch_indices(n: int, batch_size: int, *, seed: int, index: int, shuffle: bool = True,
-                  drop_last: bool = True, salt: int = 0) -> np.ndarray:
+def batch_indices(
+    n: int,
+    batch_size: int,
+    *,
+    seed: int,
+    index: int,
+    shuffle: bool = True,
+    drop_last: bool = True,
+    salt: int = 0,
+) -> np.ndarray:
     """Window indices of batch ``index``: epoch = index // batches_per_epoch, permutation
     from (seed, epoch, salt). drop_last: batches_per_epoch = n // B (if n < B one batch of B,
     wrapping around); otherwise ceil(n / B) with a short last batch."""

@@ -73,8 +73,13 @@ class SkeletonMapping:
             j if isinstance(j, str) else {"parent": j.parent, "offset": list(j.offset)}
             for j in self.joints
         ]
-        return {"name": self.name, "joints": joints, "unit": self.unit, "up": self.up,
-                "description": self.description}
+        return {
+            "name": self.name,
+            "joints": joints,
+            "unit": self.unit,
+            "up": self.up,
+            "description": self.description,
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> SkeletonMapping:
@@ -82,19 +87,33 @@ class SkeletonMapping:
             j if isinstance(j, str) else VirtualJoint(j["parent"], tuple(j["offset"]))
             for j in d["joints"]
         )
-        return cls(d["name"], joints, float(d["unit"]), d.get("up", "y"),
-                   d.get("description", ""))
+        return cls(d["name"], joints, float(d["unit"]), d.get("up", "y"), d.get("description", ""))
 
 
 BANDAI = SkeletonMapping(
     name="bandai",
     joints=(
         "Hips",
-        "UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L",
-        "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R",
-        "Spine", "Chest", "Neck", "Head",
-        "UpperArm_L", "LowerArm_L", "Hand_L", VirtualJoint("Hand_L", (8.0, 0.0, 0.0)),
-        "UpperArm_R", "LowerArm_R", "Hand_R", VirtualJoint("Hand_R", (-8.0, 0.0, 0.0)),
+        "UpperLeg_L",
+        "LowerLeg_L",
+        "Foot_L",
+        "Toes_L",
+        "UpperLeg_R",
+        "LowerLeg_R",
+        "Foot_R",
+        "Toes_R",
+        "Spine",
+        "Chest",
+        "Neck",
+        "Head",
+        "UpperArm_L",
+        "LowerArm_L",
+        "Hand_L",
+        VirtualJoint("Hand_L", (8.0, 0.0, 0.0)),
+        "UpperArm_R",
+        "LowerArm_R",
+        "Hand_R",
+        VirtualJoint("Hand_R", (-8.0, 0.0, 0.0)),
     ),  # fmt: skip
     unit=0.01,
     description="Bandai-Namco-Research-Motiondataset (cm, y up); hand index = rigid "
@@ -105,11 +124,26 @@ CMU = SkeletonMapping(
     name="cmu",
     joints=(
         "Hips",
-        "LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase",
-        "RightUpLeg", "RightLeg", "RightFoot", "RightToeBase",
-        "Spine", "Spine1", "Neck1", "Head",
-        "LeftArm", "LeftForeArm", "LeftHand", "LeftHandIndex1",
-        "RightArm", "RightForeArm", "RightHand", "RightHandIndex1",
+        "LeftUpLeg",
+        "LeftLeg",
+        "LeftFoot",
+        "LeftToeBase",
+        "RightUpLeg",
+        "RightLeg",
+        "RightFoot",
+        "RightToeBase",
+        "Spine",
+        "Spine1",
+        "Neck1",
+        "Head",
+        "LeftArm",
+        "LeftForeArm",
+        "LeftHand",
+        "LeftHandIndex1",
+        "RightArm",
+        "RightForeArm",
+        "RightHand",
+        "RightHandIndex1",
     ),  # fmt: skip
     unit=0.0254 / 0.45,
     description="CMU mocap, 31-joint cgspeed BVH (1 unit = 1/0.45 inch, y up); Holden's "

@@ -46,7 +46,7 @@ def random_style(rng: np.random.Generator) -> dict:
         stride=rng.uniform(0.85, 1.15),
         width=rng.uniform(0.07, 0.12),
         arm=rng.uniform(0.3, 1.0),
-        elbow=rng.uniform(0.15, 0.55),
+        elbow=rng.uniform(0.3, 0.8),
         lean=rng.uniform(-0.05, 0.2),
         bob=rng.uniform(0.6, 1.4),
         sway=rng.uniform(0.01, 0.035),
@@ -101,10 +101,15 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
 
     run = _smoothstep((speed - style["run_speed"] + 0.25) / 0.5)
     active = _smoothstep(speed / 0.35)
-    freq = ((1 - run) * (0.45 + 0.4 * speed) + run * (1.2 + 0.12 * speed)) / style["stride"]
+    # strides/s; walking strides are capped at 1.45 m (times scale and style) so a fast walk
+    # quickens its cadence instead of over-reaching
+    cap = 1.45 * sc * style["stride"]
+    f_walk = np.maximum((0.55 + 0.38 * speed) / style["stride"], speed / cap)
+    f_run = (1.2 + 0.15 * speed) / style["stride"]
+    freq = (1 - run) * f_walk + run * f_run
     rate = freq * active + 1e-4
     phi = rng.uniform() + np.concatenate([[0.0], np.cumsum(rate[:-1] * dt)])
-    beta = 0.62 - 0.24 * run
+    beta = 0.6 - run * (0.22 + 0.04 * np.clip(speed - 2.5, 0, 1))
     tgrid = np.arange(n, dtype=np.float64)
 
     feet_ankle, feet_toe, feet_fwd = [], [], []
@@ -121,7 +126,11 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
         rmid = np.stack([np.interp(tmid, tgrid, root[:, i]) for i in range(3)], -1)
         ymid = np.interp(tmid, tgrid, yaw)
         w = style["width"] * sc
-        prints = rmid + rotate_y(np.array([side * w, ankle_h, 0.0]), ymid)
+        # feet land a little behind the hips, more so when running (as in mocap)
+        rmid_run = np.interp(tmid, tgrid, run)
+        back = -(0.05 + 0.03 * rmid_run) * sc
+        local = np.stack([side * w * np.ones_like(back), ankle_h * np.ones_like(back), back], -1)
+        prints = rmid + rotate_y(local, ymid)
         idx = (k - kmin).astype(np.int64)
         a_now, a_next = prints[idx], prints[idx + 1]
         y_now, y_next = ymid[idx], ymid[idx + 1]
@@ -131,8 +140,13 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
         def toe_of(ankle, yaw_f, pitch):
             c, s = np.cos(pitch), np.sin(pitch)
             d = np.stack(
-                [np.zeros_like(c), foot_vec[1] * c - foot_vec[2] * s,
-                 foot_vec[1] * s + foot_vec[2] * c], -1)
+                [
+                    np.zeros_like(c),
+                    foot_vec[1] * c - foot_vec[2] * s,
+                    foot_vec[1] * s + foot_vec[2] * c,
+                ],
+                -1,
+            )
             return ankle + rotate_y(d, yaw_f), d
 
         stance = u < beta
@@ -147,7 +161,8 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
         lo = toe_fixed - rotate_y(d_lo, y_now)
         e = _smoothstep(s)[:, None]
         ankle_sw = lo + (a_next - lo) * e
-        ankle_sw[:, 1] = (1 - s) * lo[:, 1] + s * a_next[:, 1] + lift * np.sin(np.pi * s)
+        kick = 0.22 * run * active * np.sin(np.pi * s**0.6)  # running heel kick, early
+        ankle_sw[:, 1] = (1 - s) * lo[:, 1] + s * a_next[:, 1] + lift * np.sin(np.pi * s) + kick
         yaw_sw = y_now + (y_next - y_now) * e[:, 0]
         pitch_sw = pitch_max * (1 - s) ** 2 - 0.25 * active * np.sin(np.pi * s) ** 2 * s
         ankle = np.where(stance[:, None], ankle_st, ankle_sw)
@@ -178,7 +193,7 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
         ymax = ankle[:, 1] + np.sqrt(np.maximum(reach**2 - dh2, 0.01)) + hip_drop
         hip_y = np.minimum(hip_y, ymax)
         hipj.append(hj)
-    hip_y = gaussian_smooth(hip_y, 0.7)
+    hip_y = np.maximum(gaussian_smooth(hip_y, 0.7), 0.84 * hip_nom)
     pelvis[:, 1] = hip_y
     out = np.zeros((n, NUM_JOINTS, 3))
     out[:, _J["Hips"]] = pelvis
@@ -218,16 +233,16 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
         (1.0, ("LeftArm", "LeftForeArm", "LeftHand", "LeftHandIndex"), rel[0], rel[1]),
         (-1.0, ("RightArm", "RightForeArm", "RightHand", "RightHandIndex"), rel[1], rel[0]),
     ):
-        swing = np.clip(style["arm"] * 0.9 * (other - own), -0.9, 0.9)
+        swing = np.clip(style["arm"] * (0.7 + 0.5 * run) * (other - own), -0.9, 0.9)
         swing = gaussian_smooth(swing, 1.0)
         shoulder = chest + rotate_y(
             np.stack([side * 0.10 * sc * np.ones(n), 0.133 * sc * np.ones(n),
                       -0.01 * np.ones(n)], -1), tyaw)  # fmt: skip
         ab = style["abduct"]
-        ang1 = swing + lean
+        ang1 = swing + 0.3 * lean - 0.15 - 0.3 * run
         d1 = np.stack([side * np.sin(ab) * np.ones(n), -np.cos(ab) * np.cos(ang1),
                        np.cos(ab) * np.sin(ang1)], -1)  # fmt: skip
-        bend = style["elbow"] + 1.1 * run + 0.4 * np.maximum(swing, 0)
+        bend = style["elbow"] + 1.1 * run + 0.3 * np.maximum(swing, 0)
         ang2 = ang1 + bend
         d2 = np.stack([side * 0.5 * np.sin(ab) * np.ones(n), -np.cos(ang2), np.sin(ang2)], -1)
         d2 /= np.linalg.norm(d2, axis=-1, keepdims=True)
@@ -274,19 +289,22 @@ def generate(
                 "seed": int(seed), "index": i,
                 "style": {k: float(v) for k, v in style.items()}}  # fmt: skip
         clips.append(
-            features_from_positions(world, SRC_FPS, fps, name=f"synthetic_{seed}_{i:04d}",
-                                    meta=meta)
+            features_from_positions(
+                world, SRC_FPS, fps, name=f"synthetic_{seed}_{i:04d}", meta=meta
+            )
         )
     return clips
 
 
-def straight_walk(speed: float, seconds: float = 6.0, seed: int = 0, *,
-                  fps: float = DEFAULT_FPS) -> Clip:
+def straight_walk(
+    speed: float, seconds: float = 6.0, seed: int = 0, *, fps: float = DEFAULT_FPS
+) -> Clip:
     """One clip walking (or running) straight ahead at a constant ``speed`` m/s (tests)."""
     rng = np.random.default_rng([int(seed), 99])
     n = int(round(seconds * SRC_FPS)) + 1
     style = random_style(rng)
     planned = np.tile([speed, 0.0, 0.0], (n, 1))
     world = _simulate(rng, n, style, planned)
-    return features_from_positions(world, SRC_FPS, fps, name=f"straight_{speed:g}",
-                                   meta={"source": "synthetic"})
+    return features_from_positions(
+        world, SRC_FPS, fps, name=f"straight_{speed:g}", meta={"source": "synthetic"}
+    )

@@ -88,8 +88,11 @@ def likelihood_rows(
     ``nats_per_frame_metres_ci95`` ([low, high]), ``bits_per_frame_std`` (mean),
     ``bits_per_frame_std_ci95``.
     """
+    order = list(scopes or {}) + sorted(lls)
+    keys = sorted(lls, key=lambda k: (k != "window", order.index(k)))
     rows = []
-    for key, ll in lls.items():
+    for key in keys:
+        ll = lls[key]
         n = n_frames if isinstance(n_frames, int) else int(n_frames[key])
         nats = nats_per_frame_metres(ll, n, log_det_per_frame)
         bits = bits_per_frame_standardized(ll, n)

@@ -22,6 +22,7 @@ can also be trained by gradient descent on ``-log_prob`` (their parameters are `
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterable
 
 import jax
@@ -251,7 +252,16 @@ def fit_linear_ar(
     reg[-1, -1] = 0.0
     w = np.linalg.solve(a + reg, bmat)
     sigma = c - bmat.T @ w - w.T @ bmat + w.T @ a @ w
-    sigma = 0.5 * (sigma + sigma.T) + 1e-8 * np.eye(d)
+    sigma = 0.5 * (sigma + sigma.T)
+    if n <= f:
+        warnings.warn(
+            f"fit_linear_ar: {n} frames for {f} features per output: the residual covariance "
+            "is degenerate; use more windows, a smaller tau or a larger ridge", stacklevel=2)
+    # a floor on the eigenvalues keeps Sigma positive definite (degenerate data, rounding)
+    evals, evecs = np.linalg.eigh(sigma)
+    floor = max(1e-6 * max(float(evals.max()), 1e-12), 1e-10)
+    sigma = (evecs * np.maximum(evals, floor)) @ evecs.T
+    sigma = 0.5 * (sigma + sigma.T)
     out = nnx.clone(model)
     out.weight[...] = jnp.asarray(w, jnp.float32)
     if model.covariance == "full":

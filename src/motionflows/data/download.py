@@ -1,0 +1,162 @@
+"""Download the Bandai-Namco locomotion files listed in the packaged manifest.
+
+Source: GitHub ``BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset`` at the pinned
+commit ``74ead3ba1ae4696404e6086233779f60de8bf9ef`` (licence CC BY-NC 4.0: non-commercial
+use, with attribution "Bandai-Namco-Research-Motiondataset, (c) 2022 Bandai Namco Research
+Inc., CC BY-NC 4.0"). Each file is fetched from ``base_url + source_path`` (falling back to
+``base_url + file`` for flat mirrors), checked against its git blob SHA-1
+(``sha1(b"blob <size>\\0" + content)``) and saved flat as ``dest/<file>``, the layout of
+``../shared/data/bandai_locomotion_dev`` that ``load_dataset("bandai", path=dest)`` reads.
+Files already present and valid are skipped; a copy of the manifest is written beside them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable
+from pathlib import Path
+
+from motionflows.data.datasets import MANIFEST, bandai_manifest
+from motionflows.errors import MotionDataError
+
+COMMIT = "74ead3ba1ae4696404e6086233779f60de8bf9ef"
+REPOSITORY = "BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset"
+BASE_URL = f"https://raw.githubusercontent.com/{REPOSITORY}/{COMMIT}/"
+ATTRIBUTION = (
+    "Bandai-Namco-Research-Motiondataset, (c) 2022 Bandai Namco Research Inc., "
+    "CC BY-NC 4.0 (non-commercial use only)"
+)
+
+
+def git_blob_sha1(data: bytes) -> str:
+    """The git blob id of ``data``: sha1 of ``b"blob <len>\\0" + data``."""
+    h = hashlib.sha1(b"blob %d\0" % len(data))
+    h.update(data)
+    return h.hexdigest()
+
+
+def file_is_valid(path: Path, sha1: str, size: int | None = None) -> bool:
+    if not path.is_file():
+        return False
+    if size is not None and path.stat().st_size != size:
+        return False
+    return git_blob_sha1(path.read_bytes()) == sha1
+
+
+def _print_progress(event: dict) -> None:
+    print(
+        f"[{event['index']}/{event['total']}] {event['file']}: {event['status']}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _fetch(url: str, timeout: float) -> bytes:
+    with urllib.request.urlopen(url, timeout=timeout) as response:  # noqa: S310 (http/https)
+        return response.read()
+
+
+def download_bandai(
+    dest: str | os.PathLike,
+    *,
+    base_url: str = BASE_URL,
+    progress: bool | Callable[[dict], None] = True,
+    files: list[str] | None = None,
+    contents: list[str] | None = None,
+    timeout: float = 60.0,
+    retries: int = 2,
+) -> dict:
+    """Fetch the manifest's files into ``dest`` and verify them.
+
+    Args:
+      dest: target folder (created).
+      base_url: where the repository's files live (default: GitHub raw at the pinned commit).
+      progress: True prints one line per file to stderr; a callable gets a dict
+        (index, total, file, status, bytes); False is silent.
+      files: only these file names (default all); contents: only these contents (walk, run..).
+    Returns:
+      {"dest", "downloaded", "skipped", "total", "bytes"}.
+    Raises:
+      MotionDataError: a file could not be fetched or failed its checksum (after retries);
+        files fetched before stay, verified, and are skipped on the next call.
+    """
+    report = _print_progress if progress is True else (progress or (lambda event: None))
+    if not base_url.endswith("/"):
+        base_url += "/"
+    rows = bandai_manifest()
+    if files is not None:
+        wanted = {f if f.endswith(".bvh") else f + ".bvh" for f in files}
+        unknown = sorted(wanted - {r["file"] for r in rows})
+        if unknown:
+            raise ValueError(f"not in the manifest: {unknown[:5]}")
+        rows = [r for r in rows if r["file"] in wanted]
+    if contents is not None:
+        rows = [r for r in rows if r["content"] in set(contents)]
+    out = Path(dest)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = {"dest": str(out), "downloaded": 0, "skipped": 0, "total": len(rows), "bytes": 0}
+    failures = []
+    for i, row in enumerate(rows, 1):
+        target = out / row["file"]
+        size = int(row["bytes"])
+        event = {"index": i, "total": len(rows), "file": row["file"], "bytes": size}
+        if file_is_valid(target, row["git_blob_sha1"], size):
+            summary["skipped"] += 1
+            report(dict(event, status="present, checksum ok (skipped)"))
+            continue
+        data, problem = None, ""
+        for attempt in range(retries + 1):
+            for url in (base_url + row["source_path"], base_url + row["file"]):
+                try:
+                    data = _fetch(url, timeout)
+                except urllib.error.HTTPError as err:
+                    problem = f"HTTP {err.code} for {url}"
+                    data = None
+                    if err.code == 404:
+                        continue
+                    break
+                except (urllib.error.URLError, OSError, TimeoutError) as err:
+                    problem = f"cannot fetch {url}: {err}"
+                    data = None
+                    break
+                if git_blob_sha1(data) != row["git_blob_sha1"]:
+                    problem = (
+                        f"checksum mismatch for {url} (expected git blob {row['git_blob_sha1']})"
+                    )
+                    data = None
+                    continue
+                break
+            if data is not None:
+                break
+            if attempt < retries:
+                time.sleep(min(2.0**attempt, 5.0))
+        if data is None:
+            failures.append(f"{row['file']}: {problem}")
+            report(dict(event, status=f"FAILED ({problem})"))
+            continue
+        tmp = target.with_suffix(target.suffix + ".part")
+        tmp.write_bytes(data)
+        os.replace(tmp, target)
+        summary["downloaded"] += 1
+        summary["bytes"] += len(data)
+        report(dict(event, status="downloaded, checksum ok"))
+    shutil.copyfile(MANIFEST, out / "manifest.csv")
+    if failures:
+        raise MotionDataError(
+            f"{len(failures)} of {len(rows)} file(s) failed: {failures[:3]}; check the network "
+            "or --url and run the same command again (valid files are kept and skipped)",
+            path=str(out),
+        )
+    if progress is True:
+        print(
+            f"{summary['downloaded']} downloaded, {summary['skipped']} already present in "
+            f"{out}. Data: {ATTRIBUTION}.",
+            file=sys.stderr,
+        )
+    return summary

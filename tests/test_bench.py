@@ -1,0 +1,202 @@
+"""The benchmark end to end at the CI-sized ``smoke`` budget, plus its configuration rules.
+
+One module-scoped run trains every available model (tiny configs, 30 steps; the baselines
+fit in closed form) on a small synthetic set and writes the report; the tests then check
+the report's structure, the units (nats/frame in metres and bits/frame standardised are
+tied by the standardiser's log-Jacobian), finite numbers in plausible ranges, and that a
+second bench reuses the finished runs instead of retraining.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from motionflows import bench
+from motionflows.config import to_dict
+from motionflows.errors import RunError
+
+
+def _available() -> list[str]:
+    names = []
+    for name in bench.ALL_MODELS:
+        try:
+            bench.load_experiment(name)
+        except RunError:
+            continue
+        names.append(name)
+    return names
+
+
+MODELS = _available()
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    results = bench.run_benchmark(
+        data="synthetic", models=MODELS, budget="smoke", out=root / "out",
+        runs_dir=root / "runs", strict=True, progress=None,
+    )
+    return root, results
+
+
+def test_all_five_models_are_benchmarked():
+    # the baselines always exist; the deep models must be importable once they land
+    assert {"gaussian", "linear_ar"} <= set(MODELS)
+
+
+def test_report_files_and_structure(smoke):
+    root, results = smoke
+    out = root / "out"
+    for f in ("BENCHMARK.md", "results.json", "nll_per_frame.png", "motion_metrics.png"):
+        assert (out / f).is_file() and (out / f).stat().st_size > 0, f
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["models"].keys() == results["models"].keys() == set(MODELS)
+    for name in MODELS:
+        assert (out / "gifs" / f"{name}.gif").stat().st_size > 0
+    md = (out / "BENCHMARK.md").read_text()
+    for header in ("nats/frame (m)", "bits/frame (std)", "scored frames", "temperature 1",
+                   "sample frames/s, batch 64", "ground truth", saved["command"],
+                   saved["machine"]["cpu"], "JAX"):
+        assert header in md, header
+    for name in MODELS:
+        assert f"**{name}**" in md
+        assert "error" not in saved["models"][name], saved["models"][name].get("error")
+
+
+def test_likelihood_units_and_ranges(smoke):
+    _, results = smoke
+    log_det = None
+    for name in MODELS:
+        lik = results["models"][name]["likelihood"]
+        for scope, entry in lik.items():
+            for split in ("test", "train"):
+                row = entry[split]
+                nats, bits = row["nats_per_frame_metres"], row["bits_per_frame_std"]
+                assert math.isfinite(nats) and math.isfinite(bits)
+                # standardised NLL of a 63-d pose: far from 0 only by a few hundred bits
+                assert -400 < bits < 400, (name, scope, bits)
+                lo, hi = row["nats_per_frame_metres_ci95"]
+                assert lo <= nats <= hi
+                # nats (m) = bits * ln 2 - log_det_per_frame: one offset for every model
+                offset = bits * math.log(2) - nats
+                if log_det is None:
+                    log_det = offset
+                assert offset == pytest.approx(log_det, abs=1e-6)
+        assert lik["window" if name != "vae_lstm" else "elbo"]["test"]["windows"] >= 2
+    # the standardiser's log-Jacobian of 63 values with cm-scale stds: tens of nats/frame
+    assert 0 < log_det < 1000
+    # identical frames: every model's window scope covers the whole window
+    windows = {results["models"][n]["likelihood"].get("window", {}).get("frames")
+               for n in MODELS if n != "vae_lstm"}
+    assert windows == {results["window"]}
+
+
+def test_scopes_and_bounds(smoke):
+    _, results = smoke
+    models = results["models"]
+    if "moglow" in models:
+        lik = models["moglow"]["likelihood"]
+        tau = models["moglow"]["config"]["tau"]
+        assert lik["official"]["frames"] == results["window"] - tau
+        assert not lik["official"]["bound"]
+    if "vae_lstm" in models:
+        lik = models["vae_lstm"]["likelihood"]
+        assert "window" not in lik  # no exact likelihood: bounds only
+        assert {"elbo", "iwae_1", "iwae_10"} <= set(lik)
+        assert all(entry["bound"] for entry in lik.values())
+    for name in ("gaussian", "linear_ar", "glow_fixed"):
+        if name in models:
+            assert not models[name]["likelihood"]["window"]["bound"]
+    # the fitted AR baseline beats the per-frame Gaussian on held-out windows
+    g = models["gaussian"]["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+    ar = models["linear_ar"]["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+    assert ar < g
+
+
+def test_per_frame_nll(smoke):
+    _, results = smoke
+    for name in MODELS:
+        pf = results["models"][name]["per_frame_nll"]
+        if name in ("gaussian", "linear_ar", "moglow"):
+            assert pf["available"], name
+            vals = np.asarray(pf["nats_per_frame_metres"], float)
+            assert np.all(np.isfinite(vals))
+            if pf["method"] == "exact per frame":
+                # per-frame values average to the window NLL per frame
+                window = results["models"][name]["likelihood"]["window"]["test"]
+                assert vals.mean() == pytest.approx(window["nats_per_frame_metres"], abs=1e-3)
+        else:
+            assert not pf["available"] and "not available" in pf["method"]
+
+
+def test_motion_quality_and_speed(smoke):
+    _, results = smoke
+    gt = results["ground_truth"]["motion"]
+    assert gt["fd_pose"] == pytest.approx(0.0, abs=1e-6)
+    assert gt["pose_error"] == 0.0 and gt["diversity"] is None
+    assert 0 <= gt["foot_sliding"] < 1.0  # real feet barely slide (m/s)
+    assert 0 < gt["contact_rate"] <= 1
+    for name in MODELS:
+        entry = results["models"][name]
+        m = entry["motion"]
+        for key in bench.MOTION_METRICS:
+            assert m[key] is not None and math.isfinite(m[key]) and m[key] >= 0, (name, key)
+        assert m["fd_pose"] > 0 and m["diversity"] > 0  # samples differ from the data and
+        assert m["pose_error"] < 2.0  # each other; errors in metres stay body-sized
+        sp = entry["speed"]
+        for key in ("sample_frames_per_s_b1", "sample_frames_per_s_b64"):
+            assert sp[key] > 0
+        if entry["config"]["train"]["steps"] > 0:
+            assert sp["train_frames_per_s"] > 0
+        assert entry["params"] > 0
+
+
+def test_second_bench_reuses_finished_runs(smoke, tmp_path):
+    root, first = smoke
+    again = bench.run_benchmark(
+        data="synthetic", models="gaussian,linear_ar", budget="smoke", out=tmp_path / "out",
+        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
+    )
+    for name in ("gaussian", "linear_ar"):
+        entry = again["models"][name]
+        assert entry["reused"] and entry["run_dir"] == first["models"][name]["run_dir"]
+        a = entry["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+        b = first["models"][name]["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+        assert a == pytest.approx(b, rel=1e-6)
+    # a different config is not "the same run"
+    data = bench.parse_data_spec("synthetic", "smoke")
+    exp = bench.load_experiment("linear_ar")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    assert bench.find_run(root / "runs", prov["experiment"], config) is not None
+    other = config.__class__(**{**config.__dict__, "tau": config.tau + 1})
+    assert bench.find_run(root / "runs", prov["experiment"], other) is None
+
+
+def test_configs_share_one_data_config():
+    data = bench.parse_data_spec("synthetic", "smoke")
+    seen = set()
+    for name in MODELS:
+        config, prov = bench.bench_config(name, "smoke", data)
+        seen.add(json.dumps(to_dict(config.data), sort_keys=True))
+        assert prov["preset"] == "quick" and not prov["overrides_skipped"]
+    assert len(seen) == 1
+    full, prov = bench.bench_config("linear_ar", "full", bench.parse_data_spec("synthetic"))
+    assert prov["preset"] == "paper" and full.data.window == 80
+
+
+def test_clear_errors(tmp_path, capsys):
+    with pytest.raises(RunError, match="unknown model"):
+        bench.parse_models("glow_fixed,nope")
+    with pytest.raises(ValueError, match="synthetic"):
+        bench.parse_data_spec("mocap")
+    with pytest.raises(RunError, match="not a folder"):
+        bench.parse_data_spec(f"bvh:{tmp_path / 'missing'}")
+    with pytest.raises(RunError, match="budget"):
+        bench.bench_config("gaussian", "huge", bench.parse_data_spec("synthetic"))
+    assert bench.main(["--models", "nope", "--out", str(tmp_path)]) == 2
+    assert "unknown model" in capsys.readouterr().err

@@ -1,0 +1,121 @@
+"""The ``motionflows`` command: the train -> eval -> sample -> runs path and clear errors."""
+
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from _fake_data import FakeDataset
+
+import experiments.baselines as baselines
+from motionflows import cli
+from motionflows.config import DataConfig
+from motionflows.runs import read_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _noisy_loss(model, batch, key):
+    loss, metrics = baselines.loss(model, batch, key)
+    return loss + 0.01 * jax.random.normal(key, ()), metrics
+
+
+@pytest.fixture
+def fake_data(monkeypatch):
+    data = FakeDataset()
+    monkeypatch.setattr(DataConfig, "load", lambda self: data)
+    # a gradient-trained experiment (the baselines' Gaussian without the closed-form fit)
+    fake = types.ModuleType("experiments.cli_fake")
+    for name in ("Config", "PRESETS", "SCOPES", "build", "evaluate", "sample"):
+        setattr(fake, name, getattr(baselines, name))
+    fake.NAME, fake.loss = "cli_fake", _noisy_loss
+    monkeypatch.setitem(sys.modules, "experiments.cli_fake", fake)
+    return data
+
+
+def _run(capsys, *argv):
+    code = cli.main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
+    runs = tmp_path / "runs"
+    common = ["--runs-dir", runs, "--no-progress", "--set", "model=gaussian", "tau=2",
+              "train.batch_size=4", "eval_batches=1", "log_every=1", "eval_every=2"]
+    code, out, err = _run(capsys, "train", "cli_fake", "--steps", 2, "--run-name", "r",
+                          *common)
+    assert code == 0, err
+    assert "nats/frame" in out and "window" in out and "official" in out
+    run = runs / "cli_fake" / "r"
+    assert (run / "eval_test.json").is_file() and (run / "config.json").is_file()
+    # resume extends the same run to 4 steps
+    code, _, err = _run(capsys, "train", "cli_fake", "--resume", "--run-name", "r", "--steps",
+                        4, "--runs-dir", runs, "--no-progress", "--no-eval")
+    assert code == 0, err
+    assert "resumed" in err
+    assert [r["step"] for r in read_metrics(run) if "loss" in r] == [1, 2, 3, 4]
+
+    code, out, err = _run(capsys, "eval", run, "--split", "val")
+    assert code == 0, err
+    assert "val split" in out and "bits/frame" in out and (run / "eval_val.json").is_file()
+
+    code, _, err = _run(capsys, "sample", run, "--control", "walk", "--seconds", 1, "--num", 2,
+                        "--seed", 3, "--no-gif", "--out", tmp_path / "s")
+    assert code == 0, err
+    npz = np.load(tmp_path / "s" / "walk_T1_seed3.npz")
+    assert npz["pose"].shape == (2, 20, 63) and npz["control"].shape == (20, 3)
+    # poses come back in metres: the (fake) standardiser's mean/std are applied
+    assert abs(npz["pose"].mean() - fake_data.standardizer.pose_mean.mean()) < 0.5
+
+    code, out, _ = _run(capsys, "runs", "--root", runs)
+    assert code == 0 and "cli_fake" in out and " r " in out
+
+    # the closed-form baseline through the same command
+    code, out, err = _run(capsys, "train", "baselines", "--run-name", "ar", "--runs-dir", runs,
+                          "--no-progress", "--set", "tau=2", "train.batch_size=8")
+    assert code == 0, err
+    assert "fitted" in read_metrics(runs / "baselines" / "ar")[-1]["status"]
+
+
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["train", "no_such_model"], "unknown experiment"),
+        (["train", "baselines", "--preset", "huge"], "unknown preset"),
+        (["train", "baselines", "--set", "nonsense=1"], "unknown config key"),
+        (["train", "baselines", "--set", "train.steps=lots"], "cannot read"),
+        (["train", "baselines", "--data", "mars"], "--data"),
+        (["train", "baselines", "--bogus-flag"], "unrecognized arguments"),
+        (["eval", "/no/such/run"], "not a run directory"),
+        (["sample", "/no/such/run"], "not a run directory"),
+        (["render", "/no/such/file.bvh"], "not found"),
+        (["data", "download", "nowhere", "--dest", "x"], "unknown dataset"),
+        (["frobnicate"], "invalid choice"),
+    ],
+)
+def test_user_errors_are_one_clear_line_and_exit_2(capsys, tmp_path, fake_data, argv, needle):
+    code, out, err = _run(capsys, *argv, *(["--runs-dir", tmp_path] if argv[0] == "train"
+                                          and "--bogus-flag" not in argv else []))
+    assert code == 2
+    assert needle in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) <= 2
+
+
+def test_experiment_module_runs_as_python_dash_m(tmp_path):
+    cmd = [sys.executable, "-m", "experiments.baselines", "--preset", "quick", "--data",
+           "synthetic", "--steps", "3", "--set", "tau=2", "fit_windows=32",
+           "data.synthetic_clips=12", "data.synthetic_seconds=6", "--run-name", "x",
+           "--runs-dir", str(tmp_path / "runs"), "--no-eval"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    run = tmp_path / "runs" / "baselines" / "x"
+    assert (run / "config.json").is_file() and (run / "standardizer.json").is_file()
+    assert read_metrics(run)[-1]["status"] == "fitted"
+    bad = subprocess.run([sys.executable, "-m", "experiments.baselines", "--preset", "nope"],
+                         cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "unknown preset" in bad.stderr
+    assert "Traceback" not in bad.stderr

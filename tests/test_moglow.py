@@ -1,0 +1,222 @@
+"""MoGlow: sequence pass vs frame stepping, round trips, exact log-dets, dropout, streaming."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from motionflows.bijectors import initialize_from_data
+from motionflows.models.moglow import MoGlow, build_conditions
+
+D, C, TAU, K, H = 6, 2, 3, 2, 8
+
+
+def _perturbed(model: MoGlow, key, scale=0.15) -> MoGlow:
+    """The model with every trainable parameter moved off its initial value (non-trivial)."""
+    graph, params, rest = nnx.split(model, nnx.Param, ...)
+    leaves, tdef = jax.tree.flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    leaves = [p + scale * jax.random.normal(k, p.shape) for p, k in zip(leaves, keys, strict=True)]
+    return nnx.merge(graph, jax.tree.unflatten(tdef, leaves), rest)
+
+
+def _model(conditioner="lstm", seed=0, layers=1, **kw) -> MoGlow:
+    m = MoGlow(D, C, tau=TAU, num_steps=K, hidden=H, num_layers=layers, conditioner=conditioner,
+               rngs=jax.random.key(seed), **kw)
+    return _perturbed(m, jax.random.key(seed + 100))
+
+
+def _data(b=3, t=9, seed=1):
+    k1, k2 = jax.random.split(jax.random.key(seed))
+    return jax.random.normal(k1, (b, t, D)), jax.random.normal(k2, (b, t, C))
+
+
+@pytest.mark.parametrize("conditioner", ["lstm", "ff"])
+def test_sequence_pass_equals_frame_by_frame(conditioner):
+    model = _model(conditioner, layers=2)
+    pose, control = _data()
+    z_seq, ld_seq = jax.jit(lambda m, x, c: m.inverse_and_log_det(x, context=c, scope="window"))(
+        model, pose, control
+    )
+    targets, cond = build_conditions(pose, control, TAU, scope="window")
+    carry = model.initial_carry(pose.shape[0])
+    step = jax.jit(lambda m, x, c, s: m._frame_to_latent(x, c, s))
+    zs, total = [], 0.0
+    for t in range(targets.shape[1]):
+        z_t, ld_t, carry = step(model, targets[:, t], cond[:, t], carry)
+        zs.append(z_t)
+        total = total + ld_t
+    np.testing.assert_allclose(np.stack(zs, 1), z_seq, atol=1e-5)
+    np.testing.assert_allclose(total, ld_seq, atol=1e-4, rtol=1e-5)
+    # and the sampler, fed the same latents, rebuilds the data frame by frame
+    x_gen = jax.jit(lambda m, z, c: m.generate(z, c))(model, z_seq, control)
+    np.testing.assert_allclose(x_gen, pose, atol=1e-5)
+
+
+def test_official_scope_round_trip_with_seed_history():
+    model = _model()
+    pose, control = _data(t=10)
+    z, ld = model.inverse_and_log_det(pose, context=control)
+    assert z.shape == (3, 10 - TAU, D) and ld.shape == (3,)
+    # sequence forward (teacher-forced condition) inverts the sequence inverse
+    targets, cond = build_conditions(pose, control, TAU)
+    x_back, ld_fwd = model.flow.forward_and_log_det(z, context=cond)
+    np.testing.assert_allclose(x_back, targets, atol=1e-5)
+    np.testing.assert_allclose(ld_fwd, -ld, rtol=1e-5, atol=1e-4)
+    # the frame sampler seeded with the first tau frames and controls regenerates the rest
+    x_gen = model.generate(z, control[:, TAU:], seed_history=pose[:, :TAU],
+                           seed_control=control[:, :TAU])
+    np.testing.assert_allclose(x_gen, targets, atol=1e-5)
+
+
+@pytest.mark.parametrize("scope", ["official", "window"])
+def test_log_det_matches_jacobian(scope):
+    model = _model(seed=3)
+    pose, control = _data(b=1, t=6, seed=4)
+    skip = TAU if scope == "official" else 0
+
+    def f(flat):
+        x = pose.at[0, skip:].set(flat.reshape(-1, D))
+        return model.inverse_and_log_det(x, context=control, scope=scope)[0].reshape(-1)
+
+    flat = pose[0, skip:].reshape(-1)
+    jac = jax.jacfwd(f)(flat)
+    sign, logabs = jnp.linalg.slogdet(jac)
+    _, ld = model.inverse_and_log_det(pose, context=control, scope=scope)
+    assert sign != 0
+    np.testing.assert_allclose(ld[0], logabs, rtol=1e-4, atol=1e-3)
+    # causality: a target frame's latent never depends on later frames
+    jac = np.asarray(jac).reshape(-1, D, jac.shape[1] // D, D)
+    for t in range(jac.shape[0]):
+        assert np.all(jac[t, :, t + 1 :] == 0)
+    assert np.any(jac[1:, :, 0] != 0)  # ... but does depend on earlier ones (history/LSTM)
+
+
+def test_history_dropout_rate_and_pattern():
+    b, t, rate = 400, 13, 0.7
+    pose = jnp.ones((b, t, D)) + jnp.arange(D)  # no zeros anywhere in the data
+    control = jnp.ones((b, t, C))
+    _, cond = build_conditions(pose, control, TAU, dropout=rate, key=jax.random.key(0))
+    hist = np.asarray(cond[..., : TAU * D]).reshape(b, t - TAU, TAU, D)
+    ctrl = np.asarray(cond[..., TAU * D :])
+    dropped = np.all(hist == 0, axis=-1)
+    # whole frames are dropped or kept, never single channels; no rescaling of kept frames
+    assert np.all(dropped | np.all(hist == np.asarray(pose[0, 0]), axis=-1))
+    assert np.all(ctrl == 1.0)  # controls never dropped
+    n = dropped.size
+    assert abs(dropped.mean() - rate) < 4 * np.sqrt(rate * (1 - rate) / n)
+    # independent across history slots and across (window, t)
+    d = dropped.reshape(-1, TAU).astype(float)
+    corr = np.corrcoef(d.T)
+    assert np.max(np.abs(corr - np.eye(TAU))) < 0.08
+    per_window = dropped.mean(axis=(1, 2))
+    assert per_window.std() > 0.05  # not one mask shared by the whole batch
+    assert not np.all(dropped[:, 0] == dropped[:, 1])  # differs between target frames
+    # no dropout without a rate; a key is needed with one
+    _, clean = build_conditions(pose, control, TAU)
+    assert np.all(np.asarray(clean) != 0)
+    with pytest.raises(ValueError, match="key"):
+        build_conditions(pose, control, TAU, dropout=0.5)
+
+
+def test_log_prob_dropout_uses_key():
+    model = _model(dropout=0.5)
+    pose, control = _data()
+    clean = model.log_prob(pose, control)
+    a = model.log_prob(pose, control, key=jax.random.key(1))
+    b = model.log_prob(pose, control, key=jax.random.key(1))
+    c = model.log_prob(pose, control, key=jax.random.key(2))
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, clean) and not np.allclose(a, c)
+    np.testing.assert_allclose(model.log_prob(pose, control, key=jax.random.key(1), dropout=0.0),
+                               clean, rtol=1e-6)
+
+
+def test_stream_step_equals_sample():
+    model = _model()
+    _, control = _data(b=2, t=7)
+    key = jax.random.key(5)
+    seed = jax.random.normal(jax.random.key(6), (2, 5, D))
+    x = jax.jit(lambda m, c, k: m.sample(k, c, seed_history=seed, temperature=0.8))(
+        model, control, key
+    )
+    step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k, temperature=0.8))
+    state = model.init_stream(2, seed)
+    frames = []
+    for t in range(control.shape[1]):
+        x_t, state = step(model, state, control[:, t], key)
+        frames.append(x_t)
+    np.testing.assert_allclose(np.stack(frames, 1), x, atol=1e-6)
+    assert int(state.t) == control.shape[1]
+    np.testing.assert_allclose(state.poses, x[:, -TAU:], atol=0)
+    # temperature 0 is exact: the decoded all-zero latent
+    x0 = model.sample(key, control, temperature=0.0)
+    np.testing.assert_allclose(x0, model.generate(jnp.zeros((2, 7, D)), control), atol=1e-6)
+    # samples follow the key
+    assert not np.allclose(model.sample(jax.random.key(7), control), x)
+
+
+def test_window_scope_is_the_sampler_density():
+    """log_prob(scope='window') equals base log-density of the latents the sampler used."""
+    model = _model()
+    _, control = _data(b=2, t=6)
+    z = jax.random.normal(jax.random.key(9), (2, 6, D))
+    x = model.generate(z, control)
+    z_back, ld = model.inverse_and_log_det(x, context=control, scope="window")
+    np.testing.assert_allclose(z_back, z, atol=1e-4)
+    lp = model.log_prob(x, control, scope="window")
+    np.testing.assert_allclose(lp, model.base_log_prob(z).sum(-1) + ld, rtol=1e-5)
+
+
+def test_initialize_from_data_normalises_first_actnorm():
+    model = MoGlow(D, C, tau=TAU, num_steps=2, hidden=H, num_layers=1, rngs=jax.random.key(0))
+    pose, control = _data(b=16, t=12)
+    pose = 3.0 * pose + 5.0
+    init = initialize_from_data(model, pose, context=control)
+    targets, _ = build_conditions(pose, control, TAU)
+    last = init.flow.step(1)  # the last step of the stack runs first in data -> latent
+    an = last.bijectors[2]
+    u = (targets + an.bias[...]) * jnp.exp(an.logs[...])
+    np.testing.assert_allclose(u.reshape(-1, D).mean(0), 0, atol=1e-4)
+    np.testing.assert_allclose(u.reshape(-1, D).std(0), 1, atol=1e-3)
+    # the original model is untouched
+    assert np.all(model.flow.steps.bijectors[2].logs[...] == 0)
+
+
+def test_bfloat16_close_to_float32_and_student_t():
+    pose, control = _data()
+    a = _model()
+    graph, state = nnx.split(a)
+    b = MoGlow(D, C, tau=TAU, num_steps=K, hidden=H, num_layers=1, compute_dtype="bfloat16",
+               rngs=jax.random.key(0))
+    nnx.update(b, state)
+    la, lb = a.log_prob(pose, control), b.log_prob(pose, control)
+    assert lb.dtype == jnp.float32
+    diff = float(jnp.max(jnp.abs(la - lb)))
+    assert 0 < diff < 0.05 * float(jnp.max(jnp.abs(la)))
+    t = _model(base="studentt")
+    lt = t.log_prob(pose, control)
+    assert np.all(np.isfinite(lt)) and not np.allclose(lt, la)
+    assert np.all(np.isfinite(t.sample(jax.random.key(0), control)))
+
+
+def test_clear_errors():
+    model = _model()
+    pose, control = _data()
+    with pytest.raises(ValueError, match="control must be"):
+        model.log_prob(pose, control[..., :1])
+    with pytest.raises(ValueError, match="pose must be"):
+        model.log_prob(pose[..., :4], control)
+    with pytest.raises(ValueError, match="share"):
+        model.log_prob(pose[:, :5], control)
+    with pytest.raises(ValueError, match="seed_history"):
+        model.sample(jax.random.key(0), control, seed_history=jnp.zeros((3, 2, D + 1)))
+    with pytest.raises(ValueError, match="control_t"):
+        model.stream_step(model.init_stream(3), jnp.zeros((2, C)), jax.random.key(0))
+    with pytest.raises(ValueError, match="conditioner"):
+        MoGlow(D, C, conditioner="gru", rngs=jax.random.key(0))
+    with pytest.raises(ValueError, match="scope"):
+        model.log_prob(pose, control, scope="all")
