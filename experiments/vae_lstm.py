@@ -163,8 +163,14 @@ def evaluate(model: VAELSTM, batch: dict, key: jax.Array) -> dict[str, jax.Array
     return out
 
 
-def sample(model: VAELSTM, control: jax.Array, key: jax.Array, *, temperature: float = 1.0,
-           seed_pose: jax.Array | None = None) -> jax.Array:
+def sample(
+    model: VAELSTM,
+    control: jax.Array,
+    key: jax.Array,
+    *,
+    temperature: float = 1.0,
+    seed_pose: jax.Array | None = None,
+) -> jax.Array:
     """Algorithm 1 of the paper: standardised poses (B, T, 63) for the control (B, T, 3).
     ``seed_pose`` (B, S, 63), S a multiple of 4: z_1 from the posterior of those frames."""
     return model.sample(key, control, temperature=temperature, seed_frames=seed_pose)

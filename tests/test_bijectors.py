@@ -11,6 +11,7 @@ changing the output when the conditioner uses it, and clear ``ValueError`` on ba
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 
 import jax
@@ -166,7 +167,7 @@ def test_log_det_matches_jacobian_both_directions(name):
     x, c = data(name, ())
     zshape = latent_shape(name, ())
 
-    @jax.jit
+    @functools.partial(jax.jit, static_argnames="direction")
     def jac_slogdet(b, v, c, direction):
         def flat(v):
             if direction == "inverse":

@@ -115,7 +115,12 @@ def test_experiment_module_runs_as_python_dash_m(tmp_path):
     run = tmp_path / "runs" / "baselines" / "x"
     assert (run / "config.json").is_file() and (run / "standardizer.json").is_file()
     assert read_metrics(run)[-1]["status"] == "fitted"
-    bad = subprocess.run([sys.executable, "-m", "experiments.baselines", "--preset", "nope"],
-                         cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "unknown preset" in bad.stderr
-    assert "Traceback" not in bad.stderr
+
+
+def test_experiment_main_errors(capsys):
+    from motionflows.training import experiment_main
+
+    assert experiment_main(baselines, ["--preset", "nope"]) == 2
+    assert "unknown preset" in capsys.readouterr().err
+    assert experiment_main(baselines, ["--steps", "x"]) == 2
+    assert "invalid int value" in capsys.readouterr().err

@@ -42,7 +42,8 @@ def test_ranges_cover_locomotion(clips):
     assert np.hypot(control[:, 0], control[:, 1]).max() < 3.8
     # feet reach the floor; the head stays above 1.2 m
     assert pose[:, [3, 4, 7, 8], 1].min() == pytest.approx(0.0, abs=1e-6)
-    assert pose[:, 12, 1].min() > 1.2
+    assert pose[:, 12, 1].min() > 1.1
+    assert np.percentile(pose[:, 0, 1], 1) > 0.72  # no deep crouches
 
 
 def test_feet_are_planted_in_stance():

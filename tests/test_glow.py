@@ -94,17 +94,19 @@ def test_round_trip_and_init(which, request, key):
     np.testing.assert_array_equal(parts[0][:, :, 0], z[:, 0 : 4 * 63 : 63])
 
 
-@pytest.mark.parametrize("prior", ["standard", "learned"])
-def test_log_prob_matches_jacobian(prior, key):
+@pytest.mark.parametrize("which", ["conditional", "unconditional"])
+def test_log_prob_matches_jacobian(which, request, key):
     """log p(x) = log N(f^-1(x)) + log|det J| with J from jax.jacfwd over the flat window.
 
-    D = 5 channels: squeezed to 10, coupling halves 5 / 5, split 5 kept / 5 factored.
+    Both fixtures (learned prior with control; standard prior without) have perturbed,
+    non-trivial parameters. D = 63 is odd: the coupling halves of the squeezed 126 channels
+    are 63 / 63 and so are the split's kept / factored parts.
     """
-    t, d = 8, 5
-    kx, kc, km = jax.random.split(key, 3)
-    model = _tiny(km, pose_dim=d, prior=prior)
+    model = request.getfixturevalue(which)
+    t, d = 4, POSE_DIM
+    kx, kc = jax.random.split(key)
     x = jax.random.normal(kx, (t, d))
-    c = jax.random.normal(kc, (t, CONTROL_DIM))
+    c = jax.random.normal(kc, (t, CONTROL_DIM)) if model.conditional else None
 
     @jax.jit
     def check(model, x, c):
@@ -116,14 +118,14 @@ def test_log_prob_matches_jacobian(prior, key):
         z, log_det = model.inverse_and_log_det(x, context=c)
         _, fwd_log_det = model.forward_and_log_det(z, context=c)
         base = -0.5 * jnp.sum(z**2) - 0.5 * t * d * math.log(2 * math.pi)
-        return jac.shape, logabs, base, log_det, fwd_log_det, model.log_prob(x, c)
+        return jac, logabs, base, log_det, fwd_log_det, model.log_prob(x, c)
 
-    shape, logabs, base, log_det, fwd_log_det, got = check(model, x, c)
-    assert shape == (t * d, t * d)
+    jac, logabs, base, log_det, fwd_log_det, got = check(model, x, c)
+    assert jac.shape == (t * d, t * d)
     assert abs(float(logabs)) > 1.0  # non-trivial parameters
-    np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=2e-3)
-    np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=2e-3)
-    np.testing.assert_allclose(fwd_log_det, -log_det, rtol=1e-4, atol=2e-3)
+    np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=5e-3)
+    np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=5e-3)
+    np.testing.assert_allclose(fwd_log_det, -log_det, rtol=1e-4, atol=5e-3)
 
 
 def test_log_prob_batch_shapes_agree(conditional, key):
@@ -174,7 +176,7 @@ def test_clear_errors(conditional, unconditional, key):
     with pytest.raises(ValueError, match="non-finite"):
         conditional.log_prob(x.at[0, 0, 0].set(jnp.nan), c)
     with pytest.raises(ValueError, match="flat"):
-        conditional.decode(jnp.zeros((2, 8, POSE_DIM)), c)
+        conditional.decode(jnp.zeros((2, 8, 62)), c)
     with pytest.raises(ValueError, match="unconditional"):
         unconditional.log_prob(x, c)
     with pytest.raises(ValueError, match="num"):
@@ -260,7 +262,7 @@ def test_training_beats_diagonal_gaussian(trained):
     assert np.isfinite(losses).all()
     assert np.mean(losses[-20:]) < np.mean(losses[:5]) - 30.0
     val = ds.arrays("val")
-    ll = glow_fixed.evaluate(model, val, None)["window"]
+    ll = jax.jit(glow_fixed.evaluate)(model, val, None)["window"]
     assert ll.shape == (len(val["pose"]),)
     glow_nll = -float(jnp.mean(ll)) / WINDOW
     # per-frame diagonal Gaussian fitted on the (standardised) training frames
@@ -280,10 +282,12 @@ def test_trained_samples_follow_the_control(trained):
     slow, fast = np.percentile(speeds, [10, 90])
     feet = [3 * JOINT_NAMES.index(j) + 2 for j in ("LeftFoot", "RightFoot")]  # z = forward
 
+    sample = jax.jit(lambda m, c, k: glow_fixed.sample(m, c, k, temperature=0.8))
+
     def foot_travel(speed):
         c = np.tile(np.array([speed, 0.0, 0.0], np.float32), (96, WINDOW, 1))
         c = jnp.asarray(std.normalize_control(c), jnp.float32)
-        x = glow_fixed.sample(model, c, jax.random.key(7), temperature=0.8)
+        x = sample(model, c, jax.random.key(7))
         x = std.denormalize_pose(np.asarray(x))
         return float(np.abs(np.diff(x[:, :, feet], axis=1)).sum(1).mean())
 

@@ -101,8 +101,7 @@ def test_prediction_frames_and_errors():
     # samples axis averages; a different trajectory adds motion error but no pose error
     other = ctl.copy()
     other[:, :, 0] += 0.1
-    out = M.prediction_errors(np.stack([target, target]), target, ctl, fps=20,
-                              pred_control=other)
+    out = M.prediction_errors(np.stack([target, target]), target, ctl, fps=20, pred_control=other)
     assert out["frames"] == [23, 30, 40, 53, 70] and out["num_samples"] == 2
     np.testing.assert_allclose(out["pose_error"], 0.0, atol=1e-12)
     assert np.all(np.diff(out["motion_error"]) > 0)  # the drift grows with time

@@ -22,6 +22,10 @@ logging.getLogger("absl").setLevel(logging.WARNING)
 
 
 def _to_host(leaf: Any) -> np.ndarray:
+    if isinstance(leaf, jax.Array) and not leaf.is_fully_addressable:
+        if not leaf.sharding.is_fully_replicated:
+            raise ValueError("only replicated (data-parallel) state can be checkpointed")
+        leaf = leaf.addressable_data(0)  # multi-host: this process's full copy
     if isinstance(leaf, jax.Array) and jnp.issubdtype(leaf.dtype, jax.dtypes.prng_key):
         leaf = jax.random.key_data(leaf)
     return np.asarray(leaf)

@@ -35,8 +35,11 @@ def _check(pose, control, what="pose") -> tuple[np.ndarray, np.ndarray]:
         )
     if not (np.isfinite(pose).all() and np.isfinite(control).all()):
         raise ValueError(f"{what} or control has non-finite values")
-    if np.abs(pose).max() > 10:
-        raise ValueError(f"{what} values exceed 10 m: pass metres (denormalize_pose first)")
+    if np.abs(pose).max() > 50:
+        raise ValueError(
+            f"{what} values exceed 50 m: pass metres (centimetre data? standardised data? "
+            "use standardizer.denormalize_pose first)"
+        )
     return pose, control[: len(pose)]
 
 

@@ -129,6 +129,27 @@ def init_guard() -> dict[str, jax.Array]:
     return {"consecutive": z, "peak": z, "skipped": z}
 
 
+_JIT_CACHE: dict = {}
+
+
+def _cached(key: Any, build: Any) -> Any:
+    """Reuse jitted functions (and so their compilations) across train()/load_run() calls."""
+    try:
+        hash(key)
+    except TypeError:
+        return build()
+    if key not in _JIT_CACHE:
+        if len(_JIT_CACHE) >= 16:
+            _JIT_CACHE.pop(next(iter(_JIT_CACHE)))
+        _JIT_CACHE[key] = build()
+    return _JIT_CACHE[key]
+
+
+def jitted_evaluate(module: Any):
+    """``jax.jit(module.evaluate)``, one per evaluate function."""
+    return _cached(("evaluate", module.evaluate), lambda: jax.jit(module.evaluate))
+
+
 def make_train_step(module: Any, graphdef: Any, optimizer: optax.GradientTransformation):
     """The jitted step ``(params, rest, opt_state, guard, batch, key) -> (params, opt_state,
     guard, out)``; ``params`` and ``opt_state`` are donated. ``out`` holds ``loss``,
@@ -214,7 +235,7 @@ def validate(module: Any, config: Any, model: Any, dataset: Any, *, key: jax.Arr
                                                                            split)
     lls = likelihood.evaluate_windows(module, model, pose, control,
                                       batch_size=tc.val_batch_size or tc.batch_size,
-                                      key=key, evaluate_fn=evaluate_fn)
+                                      key=key, evaluate_fn=evaluate_fn or jitted_evaluate(module))
     window = pose.shape[1]
     ldpf = float(dataset.standardizer.log_det_per_frame)
     out = {}
@@ -322,7 +343,7 @@ def train(
     keys = _keys(tc.seed)
     model = module.build(config, key=keys["build"])
     ckpt = Checkpointer(ckdir, keep=tc.keep_checkpoints)
-    eval_fn = jax.jit(module.evaluate)
+    eval_fn = jitted_evaluate(module)
     base_meta = {"seed": tc.seed, "rng": np.asarray(jax.random.key_data(keys["train"])).tolist()}
     try:
         if use_fit and hasattr(module, "fit"):
@@ -384,7 +405,8 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
         graphdef, params, rest = nnx.split(model, nnx.Param, ...)
         opt_state = optimizer.init(params)
     params, rest, opt_state = replicate((params, rest, opt_state), mesh)
-    step_fn = make_train_step(module, graphdef, optimizer)
+    step_fn = _cached(("step", module.loss, graphdef, tc),
+                      lambda: make_train_step(module, graphdef, optimizer))
 
     def current_model():
         return nnx.merge(graphdef, params, rest)
@@ -456,6 +478,8 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
                     save(done, "best", val)
             if done % tc.checkpoint_every == 0 or done == tc.steps:
                 save(done)
+            if not pending:  # steps/s measure training only, not validation or checkpoints
+                t_log = time.perf_counter()
         else:
             step = tc.steps
     bar.close()
@@ -577,7 +601,8 @@ def evaluate_run(run_dir: str | Path, split: str = "test", *, checkpoint: str = 
     pose, control = _split_windows(dataset, split)
     bs = batch_size or config.train.val_batch_size or config.train.batch_size
     lls = likelihood.evaluate_windows(module, model, pose, control, batch_size=bs,
-                                      key=_keys(config.train.seed)["eval"])
+                                      key=_keys(config.train.seed)["eval"],
+                                      evaluate_fn=jitted_evaluate(module))
     window = pose.shape[1]
     scopes = getattr(module, "SCOPES", {})
     frames = {k: likelihood.scored_frames(scopes, k, window, config) for k in lls}
@@ -668,6 +693,11 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
 
 def run_train(module: Any, args: argparse.Namespace) -> int:
     """Train from parsed flags, then print the test table; the exit code."""
+    from motionflows.sharding import initialize_distributed
+
+    if initialize_distributed():  # multi-host: MOTIONFLOWS_COORDINATOR etc. (see sharding)
+        print(f"process {jax.process_index()} of {jax.process_count()}, "
+              f"{jax.device_count()} devices in all", file=sys.stderr)
     module = runs.resolve_experiment(module)
     config, preset, run_dir = configure(module, args)
     print(f"run directory: {run_dir}", file=sys.stderr)

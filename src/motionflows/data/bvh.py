@@ -88,7 +88,7 @@ def read_bvh(path: str | os.PathLike) -> BVH:
     """Parse a BVH file from disk (see :func:`parse_bvh`)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8", errors="replace")
+        text = p.read_text(encoding="utf-8-sig", errors="replace")
     except FileNotFoundError:
         raise MotionDataError("file not found; check the path", path=str(p)) from None
     except OSError as err:

@@ -516,7 +516,9 @@ def load_dataset(
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     if dropped:
         warnings.warn(
-            f"{len(dropped)} take(s) shorter than the minimum were dropped: {dropped[:5]}",
+            f"{len(dropped)} clip(s) (augmented copies included) were dropped as shorter than "
+            f"the window {window} (short={short!r}) or min_frames: {dropped[:5]}; use "
+            "short='pad' or a smaller window to keep them",
             stacklevel=2,
         )
     standardizer = Standardizer.fit(

@@ -21,10 +21,14 @@ JOINT_NAMES: tuple[str, ...] = (
 )  # fmt: skip
 """Joint order of the 21-joint Holden / MoGlow / Edinburgh skeleton."""
 
-PARENTS: tuple[int, ...] = (-1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 11, 13, 14, 15, 11, 17, 18, 19)
+PARENTS: tuple[int, ...] = (
+    -1, 0, 1, 2, 3, 0, 5, 6, 7, 0, 9, 10, 11, 11, 13, 14, 15, 11, 17, 18, 19,
+)  # fmt: skip
 """Parent index of each joint (for drawing bones and measuring bone lengths)."""
 
-MIRROR_JOINTS: tuple[int, ...] = (0, 5, 6, 7, 8, 1, 2, 3, 4, 9, 10, 11, 12, 17, 18, 19, 20, 13, 14, 15, 16)
+MIRROR_JOINTS: tuple[int, ...] = (
+    0, 5, 6, 7, 8, 1, 2, 3, 4, 9, 10, 11, 12, 17, 18, 19, 20, 13, 14, 15, 16,
+)  # fmt: skip
 """Joint permutation that swaps left and right (an involution)."""
 
 FOOT_JOINTS: tuple[int, ...] = (3, 4, 7, 8)

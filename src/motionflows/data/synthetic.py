@@ -100,7 +100,8 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
     )
 
     run = _smoothstep((speed - style["run_speed"] + 0.25) / 0.5)
-    active = _smoothstep(speed / 0.35)
+    # turning on the spot also makes the feet step (pivoting around the root)
+    active = _smoothstep(np.hypot(speed, 0.4 * turn_v) / 0.35)
     # strides/s; walking strides are capped at 1.45 m (times scale and style) so a fast walk
     # quickens its cadence instead of over-reaching
     cap = 1.45 * sc * style["stride"]
@@ -109,7 +110,8 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
     freq = (1 - run) * f_walk + run * f_run
     rate = freq * active + 1e-4
     phi = rng.uniform() + np.concatenate([[0.0], np.cumsum(rate[:-1] * dt)])
-    beta = 0.6 - run * (0.22 + 0.04 * np.clip(speed - 2.5, 0, 1))
+    beta_walk = 0.62 - 0.07 * np.clip(speed - 1.0, 0, 1)
+    beta = (1 - run) * beta_walk + run * (0.38 - 0.04 * np.clip(speed - 2.5, 0, 1))
     tgrid = np.arange(n, dtype=np.float64)
 
     feet_ankle, feet_toe, feet_fwd = [], [], []
@@ -149,14 +151,15 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
             )
             return ankle + rotate_y(d, yaw_f), d
 
-        stance = u < beta
+        beta_c = bmid[idx]  # one stance fraction per cycle, as used to place its footprint
+        stance = u < beta_c
         # stance: flat, then heel-off rotating about the planted toe
-        heel = _smoothstep((u / np.maximum(beta, 1e-6) - 0.6) / 0.4) * pitch_max
+        heel = _smoothstep((u / np.maximum(beta_c, 1e-6) - 0.6) / 0.4) * pitch_max
         toe_fixed, d0 = toe_of(a_now, y_now, np.zeros(n))
         _, d_h = toe_of(a_now, y_now, heel)
         ankle_st = toe_fixed - rotate_y(d_h, y_now)
         # swing: from the lift-off ankle to the next footprint
-        s = np.clip((u - beta) / np.maximum(1 - beta, 1e-6), 0, 1)
+        s = np.clip((u - beta_c) / np.maximum(1 - beta_c, 1e-6), 0, 1)
         _, d_lo = toe_of(a_now, y_now, pitch_max)
         lo = toe_fixed - rotate_y(d_lo, y_now)
         e = _smoothstep(s)[:, None]
@@ -182,7 +185,13 @@ def _simulate(rng: np.random.Generator, n: int, style: dict, planned: np.ndarray
     acc = np.gradient(gaussian_smooth(fwd_v, 0.2 * SRC_FPS)) * SRC_FPS
     lean = gaussian_smooth(lean + 0.05 * np.clip(acc, -2, 2), 0.1 * SRC_FPS)
     twist = 0.08 * active * np.sin(2 * np.pi * phi) * np.minimum(speed, 2.0) / 2.0
-    pelvis = root + rotate_y(np.stack([sway, np.zeros(n), -0.03 * lean], -1), yaw)
+    # surge: the hips are slowest at mid-stance (inverted pendulum), fastest in double support
+    surge = -0.025 * style["bob"] * active * (1 - 0.5 * run) * np.sin(2 * ph)
+    travel = np.stack([side_v, fwd_v], -1) / np.maximum(speed, 1e-6)[:, None]
+    offset = np.stack(
+        [sway + surge * travel[:, 0], np.zeros(n), -0.03 * lean + surge * travel[:, 1]], -1
+    )
+    pelvis = root + rotate_y(offset, yaw)
     reach = 0.995 * (thigh + shin)
     hip_y = hip_nom
     hipj = []

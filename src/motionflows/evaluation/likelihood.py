@@ -120,8 +120,9 @@ def likelihood_rows(
 
 def format_table(rows: list[dict], *, title: str | None = None) -> str:
     """A plain-text table of :func:`likelihood_rows` output, units and scored frames stated."""
+    w = max([12] + [len(r["scope"]) + (8 if r["bound"] else 0) for r in rows])
     head = (
-        f"{'scope':<12} {'NLL nats/frame (metres)':>30} {'NLL bits/frame (std)':>28} "
+        f"{'scope':<{w}} {'NLL nats/frame (metres)':>30} {'NLL bits/frame (std)':>28} "
         f"{'windows':>8} {'frames/window':>13}"
     )
     lines = [title] if title else []
@@ -133,7 +134,7 @@ def format_table(rows: list[dict], *, title: str | None = None) -> str:
         nats = f"{r['nats_per_frame_metres']:.3f} [{nlo:.3f}, {nhi:.3f}]"
         bits = f"{r['bits_per_frame_std']:.3f} [{blo:.3f}, {bhi:.3f}]"
         lines.append(
-            f"{scope:<12} {nats:>30} {bits:>28} {r['windows']:>8} "
+            f"{scope:<{w}} {nats:>30} {bits:>28} {r['windows']:>8} "
             f"{r['scored_frames_per_window']:>13}"
         )
     lines.append(

@@ -198,9 +198,7 @@ def prediction_errors(
 
 
 # ---------------------------------------------------------------------- motion quality
-def foot_sliding(
-    pose: Any, control: Any, *, fps: float, contact_height: float = 0.05
-) -> float:
+def foot_sliding(pose: Any, control: Any, *, fps: float, contact_height: float = 0.05) -> float:
     """Mean horizontal speed (m/s) of the feet while in ground contact.
 
     Per foot (ankle + toe joints), the foot is in contact at frame t when its lowest joint
@@ -303,8 +301,9 @@ def frechet_pose_distance(real: Any, generated: Any) -> float:
 
 def frechet_window_distance(real: Any, generated: Any, *, frames: int = 3) -> float:
     """Frechet distance (m^2) between the statistics of ``frames``-frame pose windows."""
-    return frechet_distance(pose_features(real, frames=frames),
-                            pose_features(generated, frames=frames))
+    return frechet_distance(
+        pose_features(real, frames=frames), pose_features(generated, frames=frames)
+    )
 
 
 def diversity(samples: Any) -> float:

@@ -156,7 +156,7 @@ class VAELSTM(nnx.Module):
         convs = [self.control_encoder.conv1, self.control_encoder.conv2,
                  self.pose_encoder.conv1, self.pose_encoder.conv2,
                  self.decoder.conv1, self.decoder.conv2]  # fmt: skip
-        return {int(conv.kernel[...].shape[0]) for conv in convs}
+        return {int(conv.kernel_shape[0]) for conv in convs}
 
     # ------------------------------------------------------------------ validation
     @staticmethod
@@ -191,9 +191,7 @@ class VAELSTM(nnx.Module):
         """h = E_c(c): (B, T, 3) -> (B, T/4, control_features). ``key`` enables dropout."""
         return self.control_encoder(c, key)
 
-    def posterior(
-        self, x: jax.Array, key: jax.Array | None = None
-    ) -> tuple[jax.Array, jax.Array]:
+    def posterior(self, x: jax.Array, key: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """q(z | x): (B, T, 63) -> (mean, log_std), each (B, T/4, latent_dim)."""
         y = self.pose_encoder(x, key)
         if self.faithful:
