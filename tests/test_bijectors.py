@@ -104,15 +104,16 @@ REGISTRY: dict[str, Case] = {
     ),
 }
 
-_BUILT: dict[str, bj.Bijector] = {}
+NAMES = sorted(REGISTRY)
+CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
+VOLUME_PRESERVING = {"permute", "reverse", "squeeze", "additive_coupling_context"}
 
 
+@functools.cache
 def built(name: str) -> bj.Bijector:
     """The registry entry, built once with perturbed (non-identity) parameters."""
-    if name not in _BUILT:
-        rngs = nnx.Rngs(hash(name) % 1000)
-        _BUILT[name] = perturb(REGISTRY[name].build(rngs), jax.random.key(7))
-    return _BUILT[name]
+    rngs = nnx.Rngs(NAMES.index(name))
+    return perturb(REGISTRY[name].build(rngs), jax.random.key(7))
 
 
 def data(name, batch, seed=0):
@@ -129,18 +130,62 @@ def latent_shape(name, batch):
     return jax.eval_shape(lambda: bij.inverse(x, context=c)).shape
 
 
-# Compiled entry points shared by the generic checks (one compilation per case and shape;
-# eager execution is compared with them in test_jit_and_vmap_agree_with_eager).
-inv = jax.jit(lambda b, x, c: b.inverse_and_log_det(x, context=c))
-fwd = jax.jit(lambda b, z, c: b.forward_and_log_det(z, context=c))
+@functools.cache
+def report(name: str) -> dict:
+    """Everything the generic checks look at, computed by ONE compiled function per entry
+    (one XLA compilation instead of dozens keeps the suite fast on 2 CPU cores; eager
+    execution is compared with it in test_jit_and_vmap_agree_with_eager)."""
+    bij = built(name)
+    x3, c3 = data(name, (3,))
+    x23, c23 = data(name, (2, 3))
+    x0, c0 = data(name, ())
+    zshape0 = latent_shape(name, ())
+    zr = jax.random.normal(jax.random.key(3), latent_shape(name, (3,)))
+    zr0 = jax.random.normal(jax.random.key(5), zshape0)
+
+    @jax.jit
+    def run(b, x3, c3, x23, c23, x0, c0, zr, zr0):
+        def inv(x, c):
+            return b.inverse_and_log_det(x, context=c)
+
+        def fwd(z, c):
+            return b.forward_and_log_det(z, context=c)
+
+        out = {"inv": inv(x3, c3)}
+        out["fwd_of_inv"] = fwd(out["inv"][0], c3)
+        out["fwd"] = fwd(zr, c3)
+        out["inv_of_fwd"] = inv(out["fwd"][0], c3)
+        out["vmap_inv"] = jax.vmap(inv)(x3, c3)
+        out["vmap_fwd"] = jax.vmap(fwd)(out["inv"][0], c3)
+        # log-dets and Jacobians of single (T, D) events
+        out["inv0"] = inv(x0, c0)
+        out["fwd0"] = fwd(zr0, c0)
+        j_inv = jax.jacfwd(lambda v: inv(v.reshape(x0.shape), c0)[0].reshape(-1))
+        j_fwd = jax.jacfwd(lambda v: fwd(v.reshape(zshape0), c0)[0].reshape(-1))
+        out["slogdet_inv"] = jnp.linalg.slogdet(j_inv(x0.reshape(-1)))
+        out["slogdet_fwd"] = jnp.linalg.slogdet(j_fwd(zr0.reshape(-1)))
+        # batch shapes (B1, B2) and (B,), and single elements of the (B1, B2) batch
+        out["inv23"] = inv(x23, c23)
+        out["fwd23"] = fwd(out["inv23"][0], c23)
+        c6 = None if c23 is None else c23.reshape(6, T, C)
+        out["inv6"] = inv(x23.reshape(6, T, D), c6)
+        out["fwd6"] = fwd(out["inv6"][0], c6)
+        for i, j in [(0, 0), (1, 2)]:
+            ci = None if c23 is None else c23[i, j]
+            out[f"inv23_{i}{j}"] = inv(x23[i, j], ci)
+            out[f"fwd23_{i}{j}"] = fwd(out[f"inv23_{i}{j}"][0], ci)
+        if c3 is not None:
+            out["inv_c2"] = inv(x3, c3 + 1.0)
+            out["fwd_c2"] = fwd(out["inv"][0], c3 + 1.0)
+        return out
+
+    out = run(bij, x3, c3, x23, c23, x0, c0, zr, zr0)
+    out.update(x3=x3, c3=c3, x23=x23, zr=zr)
+    return out
 
 
 def close(a, b, tol=2e-4):
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=tol, atol=tol)
-
-
-NAMES = sorted(REGISTRY)
-CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
 
 
 # ----------------------------------------------------------------------------- generic
@@ -148,115 +193,79 @@ CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
 
 @pytest.mark.parametrize("name", NAMES)
 def test_round_trip_both_ways(name):
-    bij = built(name)
-    x, c = data(name, (3,))
-    z, _ = inv(bij, x, c)
+    r = report(name)
+    z, _ = r["inv"]
     assert z.dtype == jnp.float32
-    close(fwd(bij, z, c)[0], x)
-    z0 = jax.random.normal(jax.random.key(3), latent_shape(name, (3,)))
-    close(inv(bij, fwd(bij, z0, c)[0], c)[0], z0)
+    close(r["fwd_of_inv"][0], r["x3"])  # data -> latent -> data
+    close(r["inv_of_fwd"][0], r["zr"])  # latent -> data -> latent
     # not the identity (the registry promises non-trivial parameters), except Squeeze,
-    # whose data and latent are the same numbers in another shape
+    # whose latent holds the data's numbers in another shape
     if name != "squeeze":
-        assert float(jnp.max(jnp.abs(z - x))) > 1e-2
+        assert float(jnp.max(jnp.abs(z - r["x3"]))) > 1e-2
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_log_det_matches_jacobian_both_directions(name):
-    bij = built(name)
-    x, c = data(name, ())
-    zshape = latent_shape(name, ())
-
-    @functools.partial(jax.jit, static_argnames="direction")
-    def jac_slogdet(b, v, c, direction):
-        def flat(v):
-            if direction == "inverse":
-                return b.inverse(v.reshape(T, D), context=c).reshape(-1)
-            return b.forward(v.reshape(zshape), context=c).reshape(-1)
-
-        return jnp.linalg.slogdet(jax.jacfwd(flat)(v))
-
-    _, ld_inv = inv(bij, x, c)
-    sign, ref = jac_slogdet(bij, x.reshape(-1), c, "inverse")
-    assert ld_inv.shape == ()
-    assert float(sign) != 0.0
-    close(ld_inv, ref, tol=5e-4)
-
-    z = jax.random.normal(jax.random.key(5), zshape)
-    _, ld_fwd = fwd(bij, z, c)
-    sign, ref = jac_slogdet(bij, z.reshape(-1), c, "forward")
-    assert float(sign) != 0.0
-    close(ld_fwd, ref, tol=5e-4)
+    r = report(name)
+    for direction in ("inv", "fwd"):
+        ld = r[f"{direction}0"][1]
+        sign, ref = r[f"slogdet_{direction}"]
+        assert ld.shape == ()
+        assert float(sign) != 0.0
+        close(ld, ref, tol=5e-4)
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_forward_log_det_is_minus_inverse_log_det(name):
-    bij = built(name)
-    x, c = data(name, (3,))
-    z, ld_inv = inv(bij, x, c)
-    x_back, ld_fwd = fwd(bij, z, c)
-    close(ld_fwd, -ld_inv)
-    close(x_back, x)
+    r = report(name)
+    close(r["fwd_of_inv"][1], -r["inv"][1])  # at matching points x <-> z
+    close(r["inv_of_fwd"][1], -r["fwd"][1])
+    if name not in VOLUME_PRESERVING:
+        assert float(jnp.max(jnp.abs(r["inv"][1]))) > 1e-3
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_jit_and_vmap_agree_with_eager(name):
     bij = built(name)
-    x, c = data(name, (3,))
+    r = report(name)
+    x, c = r["x3"], r["c3"]
     z, ld = bij.inverse_and_log_det(x, context=c)  # eager
-
-    zj, ldj = inv(bij, x, c)
-    close(zj, z)
-    close(ldj, ld)
-    xj, ldfj = fwd(bij, z, c)
-    close(xj, x)
-    close(ldfj, -ld)
-
-    # vmap over the batch axis of unbatched (T, D) calls (compiled, to keep the suite fast)
-    zv, ldv = jax.jit(jax.vmap(lambda x, c: bij.inverse_and_log_det(x, context=c)))(x, c)
-    close(zv, z)
-    close(ldv, ld)
-    xv, ldfv = jax.jit(jax.vmap(lambda z, c: bij.forward_and_log_det(z, context=c)))(z, c)
-    close(xv, x)
-    close(ldfv, -ld)
+    x_back, ld_f = bij.forward_and_log_det(z, context=c)  # eager
+    close(r["inv"][0], z)
+    close(r["inv"][1], ld)
+    close(r["fwd_of_inv"][0], x_back)
+    close(r["fwd_of_inv"][1], ld_f)
+    close(r["vmap_inv"][0], z)  # vmap over the batch of unbatched (T, D) calls
+    close(r["vmap_inv"][1], ld)
+    close(r["vmap_fwd"][0], x_back)
+    close(r["vmap_fwd"][1], ld_f)
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_batch_shapes(name):
-    bij = built(name)
-    x, c = data(name, (2, 3))
-    z, ld = inv(bij, x, c)
-    assert ld.shape == (2, 3)
+    r = report(name)
+    z, ld = r["inv23"]
+    assert ld.shape == (2, 3) and r["fwd23"][1].shape == (2, 3)
     assert z.shape[:2] == (2, 3)
-    # every batch element equals its own unbatched computation
-    for idx in [(0, 0), (1, 2)]:
-        ci = None if c is None else c[idx]
-        zi, ldi = inv(bij, x[idx], ci)
-        assert ldi.shape == ()
-        close(zi, z[idx])
-        close(ldi, ld[idx])
-        xi, ldfi = fwd(bij, zi, ci)
-        assert ldfi.shape == ()
-        close(xi, x[idx])
-    # (B,) batch: flatten the two leading axes
-    cf = None if c is None else c.reshape(6, T, C)
-    zf, ldf = inv(bij, x.reshape(6, T, D), cf)
-    assert ldf.shape == (6,)
-    close(zf.reshape(z.shape), z)
-    xf, ldff = fwd(bij, zf, cf)
-    assert ldff.shape == (6,)
-    close(xf, x.reshape(6, T, D))
+    close(r["fwd23"][0], r["x23"])
+    for i, j in [(0, 0), (1, 2)]:  # each element equals its own unbatched computation
+        zi, ldi = r[f"inv23_{i}{j}"]
+        assert ldi.shape == () and r[f"fwd23_{i}{j}"][1].shape == ()
+        close(zi, z[i, j])
+        close(ldi, ld[i, j])
+        close(r[f"fwd23_{i}{j}"][0], r["x23"][i, j])
+    z6, ld6 = r["inv6"]
+    assert ld6.shape == (6,) and r["fwd6"][1].shape == (6,)
+    close(z6.reshape(z.shape), z)
+    close(ld6.reshape(2, 3), ld)
+    close(r["fwd6"][0].reshape(r["x23"].shape), r["x23"])
 
 
 @pytest.mark.parametrize("name", CONTEXT_NAMES)
 def test_context_changes_output(name):
-    bij = built(name)
-    x, c = data(name, (3,))
-    c2 = c + 1.0
-    z1, z2 = inv(bij, x, c)[0], inv(bij, x, c2)[0]
-    assert float(jnp.max(jnp.abs(z1 - z2))) > 1e-3
-    x1, x2 = fwd(bij, z1, c)[0], fwd(bij, z1, c2)[0]
-    assert float(jnp.max(jnp.abs(x1 - x2))) > 1e-3
+    r = report(name)
+    assert float(jnp.max(jnp.abs(r["inv_c2"][0] - r["inv"][0]))) > 1e-3
+    assert float(jnp.max(jnp.abs(r["fwd_c2"][0] - r["fwd_of_inv"][0]))) > 1e-3
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -390,6 +399,10 @@ def test_initialize_inside_jit_is_a_clear_error():
 
 
 # ----------------------------------------------------------------------------- Scan
+
+
+inv = jax.jit(lambda b, x, c: b.inverse_and_log_det(x, context=c))
+fwd = jax.jit(lambda b, z, c: b.forward_and_log_det(z, context=c))
 
 
 def test_scan_equals_chain_values_log_dets_and_grads():

@@ -8,7 +8,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from _fake_data import FakeDataset
+from test_training_fakes import FakeDataset
 
 import experiments.baselines as baselines
 from motionflows import cli
@@ -44,17 +44,38 @@ def _run(capsys, *argv):
 
 def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     runs = tmp_path / "runs"
-    common = ["--runs-dir", runs, "--no-progress", "--set", "model=gaussian", "tau=2",
-              "train.batch_size=4", "eval_batches=1", "log_every=1", "eval_every=2"]
-    code, out, err = _run(capsys, "train", "cli_fake", "--steps", 2, "--run-name", "r",
-                          *common)
+    common = [
+        "--runs-dir",
+        runs,
+        "--no-progress",
+        "--set",
+        "model=gaussian",
+        "tau=2",
+        "train.batch_size=4",
+        "eval_batches=1",
+        "log_every=1",
+        "eval_every=2",
+    ]
+    code, out, err = _run(capsys, "train", "cli_fake", "--steps", 2, "--run-name", "r", *common)
     assert code == 0, err
     assert "nats/frame" in out and "window" in out and "official" in out
     run = runs / "cli_fake" / "r"
     assert (run / "eval_test.json").is_file() and (run / "config.json").is_file()
     # resume extends the same run to 4 steps
-    code, _, err = _run(capsys, "train", "cli_fake", "--resume", "--run-name", "r", "--steps",
-                        4, "--runs-dir", runs, "--no-progress", "--no-eval")
+    code, _, err = _run(
+        capsys,
+        "train",
+        "cli_fake",
+        "--resume",
+        "--run-name",
+        "r",
+        "--steps",
+        4,
+        "--runs-dir",
+        runs,
+        "--no-progress",
+        "--no-eval",
+    )
     assert code == 0, err
     assert "resumed" in err
     assert [r["step"] for r in read_metrics(run) if "loss" in r] == [1, 2, 3, 4]
@@ -63,8 +84,22 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     assert code == 0, err
     assert "val split" in out and "bits/frame" in out and (run / "eval_val.json").is_file()
 
-    code, _, err = _run(capsys, "sample", run, "--control", "walk", "--seconds", 1, "--num", 2,
-                        "--seed", 3, "--no-gif", "--out", tmp_path / "s")
+    code, _, err = _run(
+        capsys,
+        "sample",
+        run,
+        "--control",
+        "walk",
+        "--seconds",
+        1,
+        "--num",
+        2,
+        "--seed",
+        3,
+        "--no-gif",
+        "--out",
+        tmp_path / "s",
+    )
     assert code == 0, err
     npz = np.load(tmp_path / "s" / "walk_T1_seed3.npz")
     assert npz["pose"].shape == (2, 20, 63) and npz["control"].shape == (20, 3)
@@ -75,8 +110,19 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     assert code == 0 and "cli_fake" in out and " r " in out
 
     # the closed-form baseline through the same command
-    code, out, err = _run(capsys, "train", "baselines", "--run-name", "ar", "--runs-dir", runs,
-                          "--no-progress", "--set", "tau=2", "train.batch_size=8")
+    code, out, err = _run(
+        capsys,
+        "train",
+        "baselines",
+        "--run-name",
+        "ar",
+        "--runs-dir",
+        runs,
+        "--no-progress",
+        "--set",
+        "tau=2",
+        "train.batch_size=8",
+    )
     assert code == 0, err
     assert "fitted" in read_metrics(runs / "baselines" / "ar")[-1]["status"]
 
@@ -98,18 +144,38 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     ],
 )
 def test_user_errors_are_one_clear_line_and_exit_2(capsys, tmp_path, fake_data, argv, needle):
-    code, out, err = _run(capsys, *argv, *(["--runs-dir", tmp_path] if argv[0] == "train"
-                                          and "--bogus-flag" not in argv else []))
+    code, out, err = _run(
+        capsys,
+        *argv,
+        *(["--runs-dir", tmp_path] if argv[0] == "train" and "--bogus-flag" not in argv else []),
+    )
     assert code == 2
     assert needle in err
     assert "Traceback" not in err and len(err.strip().splitlines()) <= 2
 
 
 def test_experiment_module_runs_as_python_dash_m(tmp_path):
-    cmd = [sys.executable, "-m", "experiments.baselines", "--preset", "quick", "--data",
-           "synthetic", "--steps", "3", "--set", "tau=2", "fit_windows=32",
-           "data.synthetic_clips=12", "data.synthetic_seconds=6", "--run-name", "x",
-           "--runs-dir", str(tmp_path / "runs"), "--no-eval"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "experiments.baselines",
+        "--preset",
+        "quick",
+        "--data",
+        "synthetic",
+        "--steps",
+        "3",
+        "--set",
+        "tau=2",
+        "fit_windows=32",
+        "data.synthetic_clips=12",
+        "data.synthetic_seconds=6",
+        "--run-name",
+        "x",
+        "--runs-dir",
+        str(tmp_path / "runs"),
+        "--no-eval",
+    ]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     run = tmp_path / "runs" / "baselines" / "x"
@@ -124,3 +190,35 @@ def test_experiment_main_errors(capsys):
     assert "unknown preset" in capsys.readouterr().err
     assert experiment_main(baselines, ["--steps", "x"]) == 2
     assert "invalid int value" in capsys.readouterr().err
+
+
+def test_render_npz_and_demo_with_the_baseline(tmp_path, capsys, fake_data):
+    # render: an npz of pose (T, 63) metres + control (T, 3) -> GIF and control plot
+    pose = np.tile(fake_data.standardizer.pose_mean, (3, 1))
+    np.savez(tmp_path / "clip.npz", pose=pose, control=np.full((3, 3), 0.05, np.float32))
+    code, _, err = _run(capsys, "render", tmp_path / "clip.npz", "--out", tmp_path / "r")
+    assert code == 0, err
+    assert (tmp_path / "r" / "clip_0.gif").is_file()
+    assert (tmp_path / "r" / "clip_control.png").is_file()
+
+    from motionflows import demo
+
+    assert demo.choose_experiment(("no_such_model", "baselines"), verbose=False).NAME == "baselines"
+    code = demo.main(
+        [
+            "--experiment",
+            "baselines",
+            "--seconds",
+            "0.5",
+            "--runs-dir",
+            str(tmp_path / "runs"),
+            "--set",
+            "tau=2",
+        ]
+    )
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "nats/frame" in out and "window" in out
+    (run,) = (tmp_path / "runs" / "baselines").iterdir()
+    assert (run / "samples" / "demo_walk-turn-run.gif").is_file()
+    assert np.load(run / "samples" / "demo_walk-turn-run.npz")["pose"].shape == (1, 10, 63)

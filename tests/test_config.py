@@ -19,8 +19,9 @@ from motionflows.config import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-EXPERIMENTS = sorted(p.stem for p in (ROOT / "experiments").glob("*.py")
-                     if not p.stem.startswith("_"))
+EXPERIMENTS = sorted(
+    p.stem for p in (ROOT / "experiments").glob("*.py") if not p.stem.startswith("_")
+)
 
 
 def _module(name):
@@ -37,8 +38,7 @@ def test_every_preset_round_trips_through_json(tmp_path, name):
     for preset, config in module.PRESETS.items():
         assert dataclasses.is_dataclass(config) and type(config).__dataclass_params__.frozen
         assert isinstance(config.data, DataConfig) and isinstance(config.train, TrainConfig)
-        save_config(tmp_path / "config.json", experiment=module.NAME, preset=preset,
-                    config=config)
+        save_config(tmp_path / "config.json", experiment=module.NAME, preset=preset, config=config)
         exp, pre, back = load_config(tmp_path / "config.json", module.Config)
         assert (exp, pre, back) == (module.NAME, preset, config)
         # an exact whole-window score, or only bounds (VAE-LSTM)
@@ -48,8 +48,10 @@ def test_every_preset_round_trips_through_json(tmp_path, name):
 def test_overrides_dotted_bare_and_errors():
     import experiments.baselines as b
 
-    c = apply_overrides(b.PRESETS["quick"], ["train.lr=0.5", "tau=3", "clip_norm=none",
-                                             "data.mirror=false", "fit_windows=7"])
+    c = apply_overrides(
+        b.PRESETS["quick"],
+        ["train.lr=0.5", "tau=3", "clip_norm=none", "data.mirror=false", "fit_windows=7"],
+    )
     assert c.train.lr == 0.5 and c.tau == 3 and c.train.clip_norm is None
     assert c.data.mirror is False and c.fit_windows == 7
     with pytest.raises(ValueError, match="unknown config key"):

@@ -70,17 +70,17 @@ def unconditional():
     return _tiny(jax.random.key(12), control_dim=0)
 
 
-@pytest.mark.parametrize("which", ["conditional", "unconditional"])
-def test_round_trip_and_init(which, request, key):
-    model = request.getfixturevalue(which)
+def test_round_trip_and_init(conditional, key):
+    model = conditional
     kx, kc, kz = jax.random.split(key, 3)
     x = 1.5 + 2.0 * jax.random.normal(kx, (3, 8, POSE_DIM))
-    c = jax.random.normal(kc, (3, 8, CONTROL_DIM)) if model.conditional else None
+    c = jax.random.normal(kc, (3, 8, CONTROL_DIM))
     fresh = initialize_from_data(model, x, context=c)
     # the first ActNorm on the data -> latent path (last step of level 0) saw squeeze(x)
     first = fresh.flows[0].step(fresh.steps - 1)[2]
     squeezed = np.asarray(x).reshape(3, 4, 2 * POSE_DIM)
     np.testing.assert_allclose(first.bias[...], -squeezed.mean((0, 1)), atol=1e-4)
+    assert not np.allclose(model.flows[0].step(fresh.steps - 1)[2].bias[...], first.bias[...])
     for m in (model, fresh):
         z = encode(m, x, c)
         assert z.shape == (3, 8 * POSE_DIM)
@@ -116,12 +116,13 @@ def test_log_prob_matches_jacobian(which, request, key):
         jac = jax.jacfwd(flat_encode)(x.reshape(-1))
         _, logabs = jnp.linalg.slogdet(jac)
         z, log_det = model.inverse_and_log_det(x, context=c)
-        _, fwd_log_det = model.forward_and_log_det(z, context=c)
+        x_back, fwd_log_det = model.forward_and_log_det(z, context=c)
         base = -0.5 * jnp.sum(z**2) - 0.5 * t * d * math.log(2 * math.pi)
-        return jac, logabs, base, log_det, fwd_log_det, model.log_prob(x, c)
+        return jac, logabs, base, log_det, fwd_log_det, model.log_prob(x, c), x_back
 
-    jac, logabs, base, log_det, fwd_log_det, got = check(model, x, c)
+    jac, logabs, base, log_det, fwd_log_det, got, x_back = check(model, x, c)
     assert jac.shape == (t * d, t * d)
+    np.testing.assert_allclose(x_back, x, atol=2e-4, rtol=1e-4)  # round trip
     assert abs(float(logabs)) > 1.0  # non-trivial parameters
     np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=5e-3)
@@ -136,8 +137,6 @@ def test_log_prob_batch_shapes_agree(conditional, key):
     single = log_prob(conditional, x[1, 2], c[1, 2])
     assert single.shape == ()
     np.testing.assert_allclose(single, lp[1, 2], rtol=1e-5, atol=1e-3)
-    flat = log_prob(conditional, x.reshape(6, 8, POSE_DIM), c.reshape(6, 8, CONTROL_DIM))
-    np.testing.assert_allclose(flat.reshape(2, 3), lp, rtol=1e-5, atol=1e-3)
 
 
 def test_conv_net_is_a_time_convolution(key):
@@ -197,19 +196,13 @@ def test_unconditional_sampling(unconditional, key):
 
 
 def test_same_latent_different_controls_give_different_samples(conditional, key):
-    sample = jax.jit(lambda m, k, c, t: m.sample(k, c, temperature=t))
-    c1 = jax.random.normal(jax.random.fold_in(key, 1), (2, 8, CONTROL_DIM))
+    c1 = jax.random.normal(jax.random.fold_in(key, 1), (3, 8, CONTROL_DIM))
     c2 = c1.at[:, :, 0].add(1.0)
-    s1 = sample(conditional, jax.random.key(3), c1, 1.0)
-    s2 = sample(conditional, jax.random.key(3), c2, 1.0)
-    assert s1.shape == (2, 8, POSE_DIM)
-    assert float(jnp.max(jnp.abs(s1 - s2))) > 1e-2
-    np.testing.assert_array_equal(sample(conditional, jax.random.key(3), c1, 1.0), s1)
-    z = encode(conditional, s1, c1)  # the same latent, decoded under another control
-    np.testing.assert_allclose(decode(conditional, z, c1), s1, atol=1e-4)
-    assert float(jnp.max(jnp.abs(decode(conditional, z, c2) - s1))) > 1e-2
-    zero = sample(conditional, key, c1, 0.0)
-    np.testing.assert_allclose(zero, decode(conditional, jnp.zeros_like(z), c1), atol=1e-5)
+    z = jax.random.normal(jax.random.fold_in(key, 2), (3, 8 * POSE_DIM))
+    s1, s2 = decode(conditional, z, c1), decode(conditional, z, c2)
+    assert s1.shape == (3, 8, POSE_DIM)
+    assert float(jnp.min(jnp.max(jnp.abs(s1 - s2), axis=(1, 2)))) > 1e-2
+    np.testing.assert_allclose(encode(conditional, s2, c2), z, atol=1e-3, rtol=1e-3)
 
 
 # ------------------------------------------------------------------------ tiny training run

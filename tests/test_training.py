@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from _fake_data import FakeDataset
 from flax import nnx
+from test_training_fakes import FakeDataset
 
 import experiments.baselines as baselines
 from motionflows.config import TrainConfig
@@ -44,8 +44,16 @@ sys.modules["experiments.fake_gaussian"] = fake
 CONFIG = baselines.Config(
     model="gaussian",
     tau=2,
-    train=TrainConfig(steps=6, batch_size=4, lr=0.05, log_every=1, eval_every=3,
-                      eval_batches=1, checkpoint_every=100, keep_checkpoints=2),
+    train=TrainConfig(
+        steps=6,
+        batch_size=4,
+        lr=0.05,
+        log_every=1,
+        eval_every=3,
+        eval_batches=1,
+        checkpoint_every=100,
+        keep_checkpoints=2,
+    ),
 )
 
 
@@ -66,14 +74,14 @@ def test_resume_after_ctrl_c_gives_identical_loss_sequence(tmp_path):
         if step == 2:
             os.kill(os.getpid(), signal.SIGINT)
 
-    part = train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False,
-                 on_step=interrupt)
+    part = train(
+        fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False, on_step=interrupt
+    )
     assert part.status == "interrupted" and part.step == 3
     assert (tmp_path / "b" / "checkpoints" / "latest" / "3").is_dir()
     with pytest.raises(ValueError, match="--resume"):
         train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False)
-    resumed = train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False,
-                    resume=True)
+    resumed = train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False, resume=True)
     assert resumed.status == "finished" and resumed.step == 6
     a, b = _losses(tmp_path / "a"), _losses(tmp_path / "b")
     assert [s for s, _ in a] == list(range(1, 7))
@@ -89,22 +97,34 @@ def test_resume_after_ctrl_c_gives_identical_loss_sequence(tmp_path):
 
 
 def test_guard_skips_nan_steps_and_stops_after_max_nonfinite(tmp_path):
-    cfg = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, max_nonfinite=2,
-                                                                steps=8))
+    cfg = dataclasses.replace(
+        CONFIG, train=dataclasses.replace(CONFIG.train, max_nonfinite=2, steps=8)
+    )
     # one bad batch: skipped and counted, the run finishes
-    one = train(fake, cfg, run_dir=tmp_path / "one", dataset=FakeDataset(nan_at={2}),
-                progress=False)
+    one = train(
+        fake, cfg, run_dir=tmp_path / "one", dataset=FakeDataset(nan_at={2}), progress=False
+    )
     assert one.status == "finished"
     rows = [r for r in read_metrics(tmp_path / "one") if "skipped" in r]
     assert rows[-1]["skipped"] == 1 and rows[2]["loss"] is None  # step 3 had no finite loss
     assert all(np.all(np.isfinite(p)) for p in _params(one.model))
 
     # bad from batch 3 on: steps 4 and 5 skipped, the run stops at 5 with the step-3 state
-    bad = train(fake, cfg, run_dir=tmp_path / "bad", dataset=FakeDataset(nan_at=range(3, 99)),
-                progress=False)
+    bad = train(
+        fake,
+        cfg,
+        run_dir=tmp_path / "bad",
+        dataset=FakeDataset(nan_at=range(3, 99)),
+        progress=False,
+    )
     assert bad.status == "nonfinite" and bad.step == 5
-    good = train(fake, dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=3)),
-                 run_dir=tmp_path / "good", dataset=FakeDataset(), progress=False)
+    good = train(
+        fake,
+        dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps=3)),
+        run_dir=tmp_path / "good",
+        dataset=FakeDataset(),
+        progress=False,
+    )
     _, _, restored, _ = load_run(tmp_path / "bad", checkpoint="latest", dataset=FakeDataset())
     for x, y in zip(_params(good.model), _params(restored), strict=True):
         np.testing.assert_array_equal(x, y)
@@ -113,8 +133,12 @@ def test_guard_skips_nan_steps_and_stops_after_max_nonfinite(tmp_path):
 
 def test_fit_load_run_and_eval_table(tmp_path):
     data = FakeDataset(n=128)
-    cfg = dataclasses.replace(CONFIG, model="linear_ar", covariance="diag",
-                              train=dataclasses.replace(CONFIG.train, batch_size=16))
+    cfg = dataclasses.replace(
+        CONFIG,
+        model="linear_ar",
+        covariance="diag",
+        train=dataclasses.replace(CONFIG.train, batch_size=16),
+    )
     res = train(baselines, cfg, run_dir=tmp_path / "ar", dataset=data, progress=False)
     assert res.status == "fitted"
     module, config, model, _ = load_run(tmp_path / "ar", dataset=data)
@@ -122,10 +146,11 @@ def test_fit_load_run_and_eval_table(tmp_path):
     batch = data.batch("test", 5, seed=0, index=0)
     np.testing.assert_allclose(
         model.log_prob(batch["pose"], batch["control"]),
-        res.model.log_prob(batch["pose"], batch["control"]), rtol=1e-6)
+        res.model.log_prob(batch["pose"], batch["control"]),
+        rtol=1e-6,
+    )
 
-    rows = evaluate_run(tmp_path / "ar", "test", dataset=data, batch_size=5,
-                        print_table=False)
+    rows = evaluate_run(tmp_path / "ar", "test", dataset=data, batch_size=5, print_table=False)
     saved = json.loads((tmp_path / "ar" / "eval_test.json").read_text())
     assert saved["rows"] == rows
     by = {r["scope"]: r for r in rows}
@@ -136,10 +161,12 @@ def test_fit_load_run_and_eval_table(tmp_path):
     ll = np.asarray(model.log_prob(pose, control), np.float64)
     ldpf = data.standardizer.log_det_per_frame
     assert by["window"]["windows"] == len(pose)
-    np.testing.assert_allclose(by["window"]["nats_per_frame_metres"],
-                               np.mean(-(ll + 8 * ldpf) / 8), rtol=1e-5)
-    np.testing.assert_allclose(by["window"]["bits_per_frame_std"],
-                               np.mean(-ll / 8 / np.log(2)), rtol=1e-5)
+    np.testing.assert_allclose(
+        by["window"]["nats_per_frame_metres"], np.mean(-(ll + 8 * ldpf) / 8), rtol=1e-5
+    )
+    np.testing.assert_allclose(
+        by["window"]["bits_per_frame_std"], np.mean(-ll / 8 / np.log(2)), rtol=1e-5
+    )
     lo, hi = by["window"]["nats_per_frame_metres_ci95"]
     assert lo < by["window"]["nats_per_frame_metres"] < hi
     # the fitted AR beats a gradient-free untrained model by far
@@ -150,8 +177,7 @@ def test_fit_load_run_and_eval_table(tmp_path):
 def test_bootstrap_and_units():
     ll = np.array([-10.0, -12.0, -14.0])
     np.testing.assert_allclose(likelihood.nats_per_frame_metres(ll, 2, 1.5), [3.5, 4.5, 5.5])
-    np.testing.assert_allclose(likelihood.bits_per_frame_standardized(ll, 2),
-                               -ll / 2 / np.log(2))
+    np.testing.assert_allclose(likelihood.bits_per_frame_standardized(ll, 2), -ll / 2 / np.log(2))
     mean, lo, hi = likelihood.bootstrap_ci(np.arange(100.0), seed=1)
     assert mean == 49.5 and 43 < lo < 49.5 < hi < 56
     with pytest.raises(ValueError, match="not finite"):

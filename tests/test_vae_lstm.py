@@ -138,10 +138,17 @@ def test_iwae_bound_above_elbo_and_rising_with_k():
         out = E.evaluate(model, {"pose": x, "control": c}, jax.random.key(1))
         elbo = model.elbo(x, c, jax.random.key(7), num_samples=50)
         direct = model.iwae_bound(x, c, jax.random.key(9), num_samples=10)
-        return out, elbo.mean(), direct.mean()
+        # data drawn from the sampler's own model (Algorithm 1 + output noise) score higher
+        # under the sampler bound than the same data shifted by 2 standard deviations
+        own = model.sample(jax.random.key(3), c) + jnp.exp(model.output_log_std()) * (
+            jax.random.normal(jax.random.key(4), x.shape)
+        )
+        sampler_own = model.sampler_iwae_bound(own, c, jax.random.key(5), num_samples=10)
+        shifted = model.sampler_iwae_bound(own + 2.0, c, jax.random.key(5), num_samples=10)
+        return out, elbo.mean(), direct.mean(), sampler_own.mean(), shifted.mean()
 
-    out, elbo, direct = run(model, x, c)
-    assert set(out) == {"elbo", "iwae_1", "iwae_10", "iwae_100"}
+    out, elbo, direct, sampler_own, shifted = run(model, x, c)
+    assert set(out) == {"elbo", "iwae_1", "iwae_10", "iwae_100", "sampler_iwae_10"}
     assert all(v.shape == (16,) and bool(jnp.isfinite(v).all()) for v in out.values())
     means = [float(out[f"iwae_{k}"].mean()) for k in (1, 10, 100)]
     elbo = float(elbo)
@@ -149,6 +156,7 @@ def test_iwae_bound_above_elbo_and_rising_with_k():
     assert elbo < means[1] < means[2]
     assert elbo < float(direct)  # the direct bound function, independent draws
     assert all(E.SCOPES[k].bound for k in out)
+    assert float(sampler_own) > float(shifted) + 16 * 63 * 1.0
 
 
 def test_test_time_recurrence_uses_only_z1():

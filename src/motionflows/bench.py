@@ -108,9 +108,6 @@ BUDGET_SIZES: dict[str, dict[str, int]] = {
 EVAL_CHUNK = 64
 """Windows per evaluation / sampling call (the last chunk is padded, so one compile each)."""
 
-DEFAULT_BANDAI = "../shared/data/bandai_locomotion_dev"
-
-
 # --------------------------------------------------------------------------------------------
 # configuration: data spec, budget, experiment configs
 # --------------------------------------------------------------------------------------------
@@ -120,29 +117,20 @@ def parse_data_spec(spec: str, budget: str = "quick") -> DataConfig:
     """The one :class:`DataConfig` every model of a bench trains and is scored on.
 
     ``spec``: ``"synthetic"`` (the embedded procedural locomotion), ``"bandai"`` (the Bandai-
-    Namco locomotion folder; the data layer's default path) or ``"bvh:DIR"`` (any folder of BVH
-    files with the bandai skeleton mapping). The ``smoke`` budget shrinks the synthetic set and
-    the window (:data:`SMOKE_DATA`).
+    Namco locomotion folder; the data layer's default path), ``"bandai:DIR"``, or ``"bvh:DIR"``
+    (any folder of BVH files with the bandai skeleton mapping); the grammar of ``motionflows
+    train --data`` (:func:`motionflows.runs.parse_data`). The ``smoke`` budget shrinks the
+    synthetic set and the window (:data:`SMOKE_DATA`).
     """
+    from motionflows.runs import parse_data
+
     if not isinstance(spec, str) or not spec:
-        raise ValueError("--data must be 'synthetic', 'bandai' or 'bvh:DIR'")
-    if spec == "synthetic":
-        data = DataConfig(source="synthetic")
-    elif spec == "bandai":
-        data = DataConfig(source="bandai")
-    elif spec.startswith("bandai:"):
-        data = DataConfig(source="bandai", path=spec.split(":", 1)[1])
-    elif spec.startswith("bvh:"):
-        folder = spec.split(":", 1)[1]
-        if not folder:
-            raise ValueError("--data bvh:DIR needs a folder, e.g. --data bvh:data/my_takes")
-        if not Path(folder).is_dir():
-            raise RunError(f"--data {spec}: {folder!r} is not a folder of BVH files")
-        data = DataConfig(source="bvh", path=folder)
-    else:
-        raise ValueError(
-            f"--data {spec!r}: unknown data; use 'synthetic', 'bandai' or 'bvh:DIR'"
-        )
+        raise ValueError("--data must be 'synthetic', 'bandai', 'bandai:DIR' or 'bvh:DIR'")
+    fields = parse_data(spec)  # the same --data grammar as `motionflows train`
+    if fields.get("source") in ("bvh", "bandai") and fields.get("path"):
+        if not Path(fields["path"]).is_dir():
+            raise RunError(f"--data {spec}: {fields['path']!r} is not a folder of BVH files")
+    data = DataConfig(**fields)
     if budget == "smoke":
         changes = dict(SMOKE_DATA)
         if data.source != "synthetic":
@@ -719,7 +707,7 @@ class _Section:
 
     def __exit__(self, kind, err, tb):
         timings = self.entry.setdefault("timings", {})
-        name = self.key.replace("_error", "") if self.key != "error" else "train_and_likelihood"
+        name = self.key.replace("_error", "") if self.key != "error" else "train+likelihood"
         timings[name] = {"wall_s": time.perf_counter() - self.t0,
                          "cpu_s": time.process_time() - self.c0}
         if err is None or not isinstance(err, Exception):
@@ -753,9 +741,12 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
         config, prov = bench_config(name, budget, data, exp)
         entry.update(prov)
         entry["config"] = to_dict(config)
+        c0 = time.process_time()
         run_dir, reused, secs = obtain_run(
             name, exp, config, prov, runs_dir=Path(runs_dir), budget=budget,
             data_tag=_data_tag(data), retrain=retrain, progress=progress, dataset=dataset)
+        entry.setdefault("timings", {})["train"] = {"wall_s": secs,
+                                                    "cpu_s": time.process_time() - c0}
         entry.update(run_dir=str(run_dir), reused=reused, train_seconds=secs,
                      steps=int(config.train.steps))
         _, run_config, model, dataset = _load(run_dir, dataset)
@@ -1072,8 +1063,9 @@ def _performer_split(names, data_cfg, budget, sizes, runs_dir, temperature, seed
         ds = data_p.load()
         info = _dataset_info(ds)
         split["info"] = info
-        split["train"] = info.get("performers_train", info.get("train_performers", "?"))
-        split["test"] = info.get("performers_test", info.get("test_performers", "?"))
+        performers = info.get("performers") or {}
+        split["train"] = ", ".join(performers.get("train", [])) or "?"
+        split["test"] = ", ".join(performers.get("test", [])) or "?"
     except Exception as err:  # noqa: BLE001
         if strict:
             raise
@@ -1085,6 +1077,65 @@ def _performer_split(names, data_cfg, budget, sizes, runs_dir, temperature, seed
             temperature=temperature, seed=seed, retrain=retrain, strict=strict,
             progress=progress, likelihood_only=True, dataset=ds)
     return split
+
+
+def estimate_training(
+    data: str = "synthetic",
+    models: str | Sequence[str] = ALL_MODELS,
+    budget: str = "full",
+    *,
+    probe_steps: int = 4,
+    progress=print,
+) -> dict:
+    """Project the training time of a budget on this machine without running it.
+
+    For each model, trains ``probe_steps`` steps of the exact config the bench would train
+    (in a temporary folder, through ``motionflows.training.train``) and multiplies the median
+    steady-state seconds per step (the first step, which compiles, is dropped) by the
+    config's ``train.steps``. Validation passes during training are not included. Returns
+    ``{model: {"seconds_per_step", "steps", "projected_hours", ...}, "total_hours": ...}``.
+    """
+    import tempfile
+
+    from motionflows import training
+    from motionflows.runs import read_metrics
+
+    names = parse_models(models)
+    data_cfg = parse_data_spec(data, budget)
+    dataset = data_cfg.load()
+    out: dict[str, Any] = {"budget": budget, "data": data, "machine": describe_machine(),
+                           "models": {}}
+    total = 0.0
+    for name in names:
+        exp = load_experiment(name)
+        config, prov = bench_config(name, budget, data_cfg, exp)
+        steps = int(config.train.steps)
+        probe, _, _ = replace_fields(config, {
+            "train.steps": max(probe_steps, 2) if steps > 0 else 0, "train.log_every": 1,
+            "train.eval_every": 10**9, "train.eval_batches": 1,
+            "train.checkpoint_every": 10**9})
+        _log(progress, f"{name}: timing {probe.train.steps} steps of the {prov['preset']} config")
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            training.train(exp, probe, run_dir=Path(tmp) / "probe", preset=prov["preset"],
+                           dataset=dataset, progress=False)
+            wall = time.perf_counter() - t0
+            rows = read_metrics(Path(tmp) / "probe")
+        rates = [r["steps_per_s"] for r in rows if isinstance(r.get("steps_per_s"), int | float)]
+        if steps == 0:
+            entry = {"steps": 0, "seconds_per_step": None, "projected_hours": wall / 3600,
+                     "note": "closed-form fit (timed in full)"}
+        else:
+            steady = rates[1:] or rates
+            sec = 1.0 / float(np.median(steady))
+            entry = {"steps": steps, "seconds_per_step": sec,
+                     "batch_size": int(config.train.batch_size),
+                     "projected_hours": sec * steps / 3600, "probe_wall_s": wall}
+        total += entry["projected_hours"]
+        out["models"][name] = entry
+        _log(progress, f"{name}: {entry}")
+    out["total_hours"] = total
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -1113,6 +1164,9 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--no-performer-split", dest="performer_split", action="store_false")
     p.add_argument("--retrain", action="store_true", help="train even if a finished run exists")
     p.add_argument("--no-gifs", dest="gifs", action="store_false", help="skip the GIFs")
+    p.add_argument("--estimate", action="store_true",
+                   help="only time a few training steps per model and print the projected "
+                   "training time of the budget on this machine (writes OUT/estimate.json)")
     return p
 
 
@@ -1127,6 +1181,17 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     out = ns.get("out") or "runs/bench"
     try:
         names = parse_models(models)
+        if ns.get("estimate"):
+            est = estimate_training(data, names, budget)
+            Path(out).mkdir(parents=True, exist_ok=True)
+            (Path(out) / "estimate.json").write_text(json.dumps(_jsonable(est), indent=2))
+            for name, e in est["models"].items():
+                sps = e["seconds_per_step"]
+                per = f"{sps:.3f} s/step x {e['steps']} steps" if sps else e.get("note", "")
+                print(f"{name:>10}: {per} = {e['projected_hours']:.2f} h")
+            print(f"{'total':>10}: {est['total_hours']:.2f} h of training ({budget} budget, "
+                  f"{est['machine']['cpu']}, {est['machine']['cores']} cores)")
+            return 0
         run_benchmark(
             data=data, models=names, budget=budget, out=out,
             runs_dir=ns.get("runs_dir") or "runs",

@@ -63,9 +63,7 @@ def unflatten(template: Any, flat: dict[str, Any], what: str = "state") -> Any:
 
 def all_finite(flat: dict[str, np.ndarray]) -> bool:
     """Whether every floating-point array is finite."""
-    return all(
-        np.all(np.isfinite(v)) for v in flat.values() if np.issubdtype(v.dtype, np.inexact)
-    )
+    return all(np.all(np.isfinite(v)) for v in flat.values() if np.issubdtype(v.dtype, np.inexact))
 
 
 class Checkpointer:

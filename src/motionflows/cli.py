@@ -45,8 +45,9 @@ def cmd_eval(args) -> int:
     from motionflows import runs, training
 
     runs.check_run_dir(args.run_dir)
-    training.evaluate_run(args.run_dir, args.split, checkpoint=args.checkpoint,
-                          batch_size=args.batch_size)
+    training.evaluate_run(
+        args.run_dir, args.split, checkpoint=args.checkpoint, batch_size=args.batch_size
+    )
     print(f"wrote {Path(args.run_dir) / f'eval_{args.split}.json'}", file=sys.stderr)
     return 0
 
@@ -58,27 +59,42 @@ def cmd_sample(args) -> int:
     run_dir = runs.check_run_dir(args.run_dir)
     if args.num < 1 or args.seconds <= 0:
         raise RunError("--num must be >= 1 and --seconds > 0")
-    module, config, model, _ = training.load_run(run_dir, checkpoint=args.checkpoint,
-                                                 load_data=False)
+    module, config, model, _ = training.load_run(
+        run_dir, checkpoint=args.checkpoint, load_data=False
+    )
     std = training.load_standardizer(run_dir)
     fps = float(config.data.fps)
     control = load_control(args.control, args.seconds, fps)  # (T, 3) m/frame, rad/frame
     temperature = float(args.temperature)
-    pose = training.draw_samples(module, model, std, control, num=args.num,
-                                 temperature=temperature, seed=args.seed)
+    pose = training.draw_samples(
+        module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
+    )
     out = Path(args.out) if args.out else run_dir / "samples"
     out.mkdir(parents=True, exist_ok=True)
     stem = f"{Path(str(args.control)).stem}_T{temperature:g}_seed{args.seed}"
     npz = out / f"{stem}.npz"
-    np.savez(npz, pose=pose, control=control, fps=fps, temperature=temperature,
-             seed=args.seed, experiment=module.NAME, run_dir=str(run_dir))
+    np.savez(
+        npz,
+        pose=pose,
+        control=control,
+        fps=fps,
+        temperature=temperature,
+        seed=args.seed,
+        experiment=module.NAME,
+        run_dir=str(run_dir),
+    )
     print(f"wrote {npz}: pose {pose.shape} metres, control {control.shape}", file=sys.stderr)
     if not args.no_gif:
         from motionflows import render
 
         for i in range(args.num):
-            gif = render.animate(pose[i], control, out / f"{stem}_{i}.gif", fps=fps,
-                                 title=f"{module.NAME} {args.control} #{i}")
+            gif = render.animate(
+                pose[i],
+                control,
+                out / f"{stem}_{i}.gif",
+                fps=fps,
+                title=f"{module.NAME} {args.control} #{i}",
+            )
             print(f"wrote {gif}", file=sys.stderr)
         render.plot_controls(control, out / f"{stem}_control.png", fps, title=str(args.control))
     return 0
@@ -103,19 +119,19 @@ def cmd_render(args) -> int:
         raise RunError(f"{path}: render reads .bvh or .npz files")
     with np.load(path, allow_pickle=False) as data:
         if "pose" not in data or "control" not in data:
-            raise RunError(f"{path} must hold arrays 'pose' (T, 63) or (N, T, 63) metres and "
-                           "'control' (T, 3)")
+            raise RunError(
+                f"{path} must hold arrays 'pose' (T, 63) or (N, T, 63) metres and 'control' (T, 3)"
+            )
         pose, control = np.asarray(data["pose"]), np.asarray(data["control"])
         fps = float(data["fps"]) if "fps" in data else args.fps
     poses = pose[None] if pose.ndim == 2 else pose
-    controls = control if control.ndim == 3 else np.broadcast_to(control, (len(poses),
-                                                                          *control.shape))
+    controls = (
+        control if control.ndim == 3 else np.broadcast_to(control, (len(poses), *control.shape))
+    )
     for i, (p, c) in enumerate(zip(poses, controls, strict=True)):
-        gif = render.animate(p, c, out / f"{path.stem}_{i}.gif", fps=fps,
-                             title=f"{path.stem} #{i}")
+        gif = render.animate(p, c, out / f"{path.stem}_{i}.gif", fps=fps, title=f"{path.stem} #{i}")
         print(f"wrote {gif}", file=sys.stderr)
-    png = render.plot_controls(controls[0], out / f"{path.stem}_control.png", fps,
-                               title=path.stem)
+    png = render.plot_controls(controls[0], out / f"{path.stem}_control.png", fps, title=path.stem)
     print(f"wrote {png}", file=sys.stderr)
     return 0
 
@@ -162,8 +178,9 @@ def cmd_bench(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from motionflows.training import add_train_arguments
 
-    parser = _Parser(prog="motionflows",
-                     description="Probabilistic, controllable motion models in JAX.")
+    parser = _Parser(
+        prog="motionflows", description="Probabilistic, controllable motion models in JAX."
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
 
@@ -181,9 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("sample", help="sample motion for a control (npz + GIF)")
     p.add_argument("run_dir")
-    p.add_argument("--control", default="walk-turn-run",
-                   help="a control preset (stand, walk, run, walk-turn-left, walk-then-run, "
-                        "walk-turn-run, figure-eight, ...) or a (T, 3) .npy file")
+    p.add_argument(
+        "--control",
+        default="walk-turn-run",
+        help="a control preset (stand, walk, run, walk-turn-left, walk-then-run, "
+        "walk-turn-run, figure-eight, ...) or a (T, 3) .npy file",
+    )
     p.add_argument("--seconds", type=float, default=8.0)
     p.add_argument("--num", type=int, default=1, help="number of samples")
     p.add_argument("--temperature", type=float, default=1.0)

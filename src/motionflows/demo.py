@@ -8,6 +8,7 @@ likelihood table (nats/frame in metres and bits/frame standardised), samples the
 ``<run>/samples/``.
 
     python -m motionflows.demo [--experiment NAME] [--steps N] [--seconds S] [--runs-dir DIR]
+                               [--set key=value ...]
 """
 
 from __future__ import annotations
@@ -50,10 +51,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=8.0, help="length of the sample")
     parser.add_argument("--control", default="walk-turn-run")
     parser.add_argument("--runs-dir", default="runs")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config overrides, as for `motionflows train`",
+    )
     parser.add_argument("--no-gif", action="store_true")
     args = parser.parse_args(argv)
 
     from motionflows import training
+    from motionflows.config import apply_overrides
     from motionflows.data.controls import load_control
     from motionflows.errors import RunError
 
@@ -64,14 +74,22 @@ def main(argv: list[str] | None = None) -> int:
         print(f"demo: {err}", file=sys.stderr)
         return 2
     config = module.PRESETS["quick"]
-    config = dataclasses.replace(config, data=dataclasses.replace(config.data,
-                                                                  source="synthetic"))
+    config = dataclasses.replace(config, data=dataclasses.replace(config.data, source="synthetic"))
     if args.steps is not None:
-        config = dataclasses.replace(config,
-                                     train=dataclasses.replace(config.train, steps=args.steps))
+        config = dataclasses.replace(
+            config, train=dataclasses.replace(config.train, steps=args.steps)
+        )
+    try:
+        config = apply_overrides(config, args.overrides)
+    except ValueError as err:
+        print(f"demo: {err}", file=sys.stderr)
+        return 2
     run_dir = Path(args.runs_dir) / module.NAME / f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
-    print(f"== motionflows demo: {module.NAME} (preset quick, {config.train.steps} steps) on "
-          f"synthetic data -> {run_dir}", file=sys.stderr)
+    print(
+        f"== motionflows demo: {module.NAME} (preset quick, {config.train.steps} steps) on "
+        f"synthetic data -> {run_dir}",
+        file=sys.stderr,
+    )
     print("== loading the synthetic data (generated once, then cached)", file=sys.stderr)
     dataset = config.data.load()
     result = training.train(module, config, run_dir=run_dir, preset="quick", dataset=dataset)
@@ -89,8 +107,11 @@ def main(argv: list[str] | None = None) -> int:
         pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
     except (ValueError, TypeError) as err:  # e.g. a fixed-length model: one window only
         n = int(config.data.window)
-        print(f"demo: sampling {len(control)} frames failed ({err}); sampling one "
-              f"{n}-frame window instead", file=sys.stderr)
+        print(
+            f"demo: sampling {len(control)} frames failed ({err}); sampling one "
+            f"{n}-frame window instead",
+            file=sys.stderr,
+        )
         control = load_control(args.control, n / fps, fps)
         pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
     except RunError as err:
@@ -105,16 +126,25 @@ def main(argv: list[str] | None = None) -> int:
         from motionflows import render
 
         print("== rendering the GIF", file=sys.stderr)
-        gif = render.animate(pose[0], control, out / f"demo_{args.control}.gif", fps=fps,
-                             title=f"{module.NAME}: {args.control}")
-        render.plot_controls(control, out / f"demo_{args.control}_control.png", fps,
-                             title=args.control)
+        gif = render.animate(
+            pose[0],
+            control,
+            out / f"demo_{args.control}.gif",
+            fps=fps,
+            title=f"{module.NAME}: {args.control}",
+        )
+        render.plot_controls(
+            control, out / f"demo_{args.control}_control.png", fps, title=args.control
+        )
         print(f"== GIF: {gif}", file=sys.stderr)
     minutes = (time.perf_counter() - t0) / 60
-    print(f"\n== done in {minutes:.1f} min. Next:\n"
-          f"   motionflows sample {run_dir} --control figure-eight --seconds 10 --num 3\n"
-          f"   motionflows eval {run_dir} --split test\n"
-          f"   motionflows runs", file=sys.stderr)
+    print(
+        f"\n== done in {minutes:.1f} min. Next:\n"
+        f"   motionflows sample {run_dir} --control figure-eight --seconds 10 --num 3\n"
+        f"   motionflows eval {run_dir} --split test\n"
+        f"   motionflows runs",
+        file=sys.stderr,
+    )
     return 0
 
 

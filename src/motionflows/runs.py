@@ -159,8 +159,15 @@ def _fmt_time(seconds: float) -> str:
 class Progress:
     """A plain-text progress bar with ETA on stderr (one line per update off a terminal)."""
 
-    def __init__(self, total: int, start: int = 0, *, enabled: bool = True,
-                 stream: TextIO | None = None, width: int = 24):
+    def __init__(
+        self,
+        total: int,
+        start: int = 0,
+        *,
+        enabled: bool = True,
+        stream: TextIO | None = None,
+        width: int = 24,
+    ):
         self.total, self.start, self.enabled = total, start, enabled
         self.stream = stream or sys.stderr
         self.width = width
@@ -177,8 +184,10 @@ class Progress:
         frac = step / self.total if self.total else 1.0
         fill = int(round(self.width * frac))
         bar = "#" * fill + "." * (self.width - fill)
-        line = (f"[{bar}] {step}/{self.total} {100 * frac:3.0f}% {info} "
-                f"| {_fmt_time(elapsed)} elapsed, ETA {_fmt_time(eta)}")
+        line = (
+            f"[{bar}] {step}/{self.total} {100 * frac:3.0f}% {info} "
+            f"| {_fmt_time(elapsed)} elapsed, ETA {_fmt_time(eta)}"
+        )
         if self.tty:
             self.stream.write("\r\033[K" + line)
         else:
@@ -225,27 +234,33 @@ def list_runs(root: str | Path = "runs") -> list[dict]:
         val, val_step = best_val(rows)
         steps = [r["step"] for r in rows if "step" in r]
         status = next((r["status"] for r in reversed(rows) if "status" in r), "running?")
-        out.append({
-            "experiment": payload.get("experiment", run_dir.parent.name),
-            "run": run_dir.name,
-            "preset": payload.get("preset"),
-            "step": max(steps) if steps else 0,
-            "best_val_nll": val,
-            "best_step": val_step,
-            "status": status,
-            "dir": str(run_dir),
-        })
+        out.append(
+            {
+                "experiment": payload.get("experiment", run_dir.parent.name),
+                "run": run_dir.name,
+                "preset": payload.get("preset"),
+                "step": max(steps) if steps else 0,
+                "best_val_nll": val,
+                "best_step": val_step,
+                "status": status,
+                "dir": str(run_dir),
+            }
+        )
     return out
 
 
 def format_runs(runs: list[dict]) -> str:
-    head = (f"{'experiment':<14} {'run':<28} {'preset':<10} {'step':>7} "
-            f"{'best val NLL':>13} {'at':>7}  status")
+    head = (
+        f"{'experiment':<14} {'run':<28} {'preset':<10} {'step':>7} "
+        f"{'best val NLL':>13} {'at':>7}  status"
+    )
     lines = [head, "-" * len(head)]
     for r in runs:
         val = f"{r['best_val_nll']:.3f}" if r["best_val_nll"] is not None else "-"
         at = str(r["best_step"]) if r["best_step"] is not None else "-"
-        lines.append(f"{r['experiment']:<14} {r['run']:<28} {str(r['preset']):<10} "
-                     f"{r['step']:>7} {val:>13} {at:>7}  {r['status']}")
+        lines.append(
+            f"{r['experiment']:<14} {r['run']:<28} {str(r['preset']):<10} "
+            f"{r['step']:>7} {val:>13} {at:>7}  {r['status']}"
+        )
     lines.append("best val NLL: nats/frame in metres (validation windows, 'window' scope)")
     return "\n".join(lines)

@@ -115,8 +115,9 @@ def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
         parts.append(optax.adam(lr, b1=train.b1, b2=train.b2, eps=train.eps))
     elif train.optimizer == "adamw":
         parts.append(
-            optax.adamw(lr, b1=train.b1, b2=train.b2, eps=train.eps,
-                        weight_decay=train.weight_decay)
+            optax.adamw(
+                lr, b1=train.b1, b2=train.b2, eps=train.eps, weight_decay=train.weight_decay
+            )
         )
     else:
         raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {train.optimizer!r}")
@@ -225,17 +226,31 @@ def validation_windows(config: Any, dataset: Any, split: str = "val"):
     return pose, control
 
 
-def validate(module: Any, config: Any, model: Any, dataset: Any, *, key: jax.Array,
-             evaluate_fn: Any = None, split: str = "val", windows: Any = None) -> dict:
+def validate(
+    module: Any,
+    config: Any,
+    model: Any,
+    dataset: Any,
+    *,
+    key: jax.Array,
+    evaluate_fn: Any = None,
+    split: str = "val",
+    windows: Any = None,
+) -> dict:
     """Validation NLL on :func:`validation_windows`: ``val_nll`` (nats/frame, metres) and
     ``val_bits`` (bits/frame, standardised) of the ``window`` scope (or the first scope),
     plus ``val_<scope>_nll`` for every scope."""
     tc = config.train
-    pose, control = windows if windows is not None else validation_windows(config, dataset,
-                                                                           split)
-    lls = likelihood.evaluate_windows(module, model, pose, control,
-                                      batch_size=tc.val_batch_size or tc.batch_size,
-                                      key=key, evaluate_fn=evaluate_fn or jitted_evaluate(module))
+    pose, control = windows if windows is not None else validation_windows(config, dataset, split)
+    lls = likelihood.evaluate_windows(
+        module,
+        model,
+        pose,
+        control,
+        batch_size=tc.val_batch_size or tc.batch_size,
+        key=key,
+        evaluate_fn=evaluate_fn or jitted_evaluate(module),
+    )
     window = pose.shape[1]
     ldpf = float(dataset.standardizer.log_det_per_frame)
     out = {}
@@ -277,8 +292,10 @@ def _standardizer_dict(dataset: Any) -> dict:
     std = dataset.standardizer
     if hasattr(std, "to_dict"):
         return std.to_dict()
-    return {k: np.asarray(getattr(std, k)).tolist()
-            for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+    return {
+        k: np.asarray(getattr(std, k)).tolist()
+        for k in ("pose_mean", "pose_std", "control_mean", "control_std")
+    }
 
 
 def _write_json(path: Path, payload: Any) -> None:
@@ -337,8 +354,9 @@ def train(
         (run_dir / sub).mkdir(parents=True, exist_ok=True)
     dataset = config.data.load() if dataset is None else dataset
     if _primary():
-        cfg.save_config(run_dir / "config.json", experiment=module.NAME, preset=preset,
-                        config=config)
+        cfg.save_config(
+            run_dir / "config.json", experiment=module.NAME, preset=preset, config=config
+        )
         _write_json(run_dir / "standardizer.json", _standardizer_dict(dataset))
     keys = _keys(tc.seed)
     model = module.build(config, key=keys["build"])
@@ -348,9 +366,21 @@ def train(
     try:
         if use_fit and hasattr(module, "fit"):
             return _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta)
-        return _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys,
-                           base_meta, resume=resume, progress=progress, mesh=mesh,
-                           on_step=on_step)
+        return _train_loop(
+            module,
+            config,
+            model,
+            dataset,
+            run_dir,
+            ckpt,
+            eval_fn,
+            keys,
+            base_meta,
+            resume=resume,
+            progress=progress,
+            mesh=mesh,
+            on_step=on_step,
+        )
     finally:
         ckpt.close()
 
@@ -369,13 +399,30 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
     row = {"step": 0, "fit": "closed-form", "fit_seconds": seconds, **val, "status": "fitted"}
     runs.truncate_metrics(run_dir, -1)
     runs.append_metrics(run_dir, row)
-    print(f"fitted {module.NAME} in closed form in {seconds:.1f} s: val NLL "
-          f"{val['val_nll']:.3f} nats/frame (metres)", file=sys.stderr)
+    print(
+        f"fitted {module.NAME} in closed form in {seconds:.1f} s: val NLL "
+        f"{val['val_nll']:.3f} nats/frame (metres)",
+        file=sys.stderr,
+    )
     return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
 
 
-def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, *,
-                resume, progress, mesh, on_step):
+def _train_loop(
+    module,
+    config,
+    model,
+    dataset,
+    run_dir,
+    ckpt,
+    eval_fn,
+    keys,
+    base_meta,
+    *,
+    resume,
+    progress,
+    mesh,
+    on_step,
+):
     tc = config.train
     mesh = data_mesh() if mesh is None else mesh
     check_batch_size(tc.batch_size, mesh)
@@ -405,15 +452,22 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
         graphdef, params, rest = nnx.split(model, nnx.Param, ...)
         opt_state = optimizer.init(params)
     params, rest, opt_state = replicate((params, rest, opt_state), mesh)
-    step_fn = _cached(("step", module.loss, graphdef, tc),
-                      lambda: make_train_step(module, graphdef, optimizer))
+    step_fn = _cached(
+        ("step", module.loss, graphdef, tc), lambda: make_train_step(module, graphdef, optimizer)
+    )
 
     def current_model():
         return nnx.merge(graphdef, params, rest)
 
     def save(step, which="latest", extra=None):
-        meta = {**base_meta, "step": step, "data_index": step, "best_val_nll": best,
-                "skipped": int(guard["skipped"]), **(extra or {})}
+        meta = {
+            **base_meta,
+            "step": step,
+            "data_index": step,
+            "best_val_nll": best,
+            "skipped": int(guard["skipped"]),
+            **(extra or {}),
+        }
         ckpt.save(step, {"params": params, "rest": rest, "opt": opt_state}, meta, which=which)
 
     val_windows = validation_windows(config, dataset)
@@ -450,11 +504,15 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
                     vals = [_scalar(o[k]) for o in ok]
                     vals = [v for v in vals if isinstance(v, int | float)]
                     row[k] = float(np.mean(vals)) if vals else None
-                row.update({
-                    "lr": float(schedule(done - 1)), "steps_per_s": rate,
-                    "frames_per_s": rate * frames, "skipped": int(guard["skipped"]),
-                    "nonfinite_run": int(guard["consecutive"]),
-                })
+                row.update(
+                    {
+                        "lr": float(schedule(done - 1)),
+                        "steps_per_s": rate,
+                        "frames_per_s": rate * frames,
+                        "skipped": int(guard["skipped"]),
+                        "nonfinite_run": int(guard["consecutive"]),
+                    }
+                )
                 last_row = row
                 if _primary():
                     runs.append_metrics(run_dir, row)
@@ -465,11 +523,19 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
                     step = done
                     break
             if done % tc.eval_every == 0 or done == tc.steps:
-                val = validate(module, config, current_model(), dataset, key=keys["eval"],
-                               evaluate_fn=eval_fn, windows=val_windows)
+                val = validate(
+                    module,
+                    config,
+                    current_model(),
+                    dataset,
+                    key=keys["eval"],
+                    evaluate_fn=eval_fn,
+                    windows=val_windows,
+                )
                 if _primary():
-                    runs.append_metrics(run_dir, {"step": done,
-                                                  **{k: _scalar(v) for k, v in val.items()}})
+                    runs.append_metrics(
+                        run_dir, {"step": done, **{k: _scalar(v) for k, v in val.items()}}
+                    )
                     if time.perf_counter() - t_plot > 60.0:  # plotting costs ~1 s
                         runs.plot_losses(run_dir)
                         t_plot = time.perf_counter()
@@ -485,14 +551,20 @@ def _train_loop(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, ba
     bar.close()
     if status == "interrupted":
         save(step)
-        print(f"\ninterrupted at step {step}: checkpoint saved in {run_dir / 'checkpoints'}; "
-              f"continue with --resume", file=sys.stderr)
+        print(
+            f"\ninterrupted at step {step}: checkpoint saved in {run_dir / 'checkpoints'}; "
+            f"continue with --resume",
+            file=sys.stderr,
+        )
     elif status == "nonfinite":
         save(step)
-        print(f"stopped at step {step}: {int(guard['peak'])} consecutive steps had a NaN/inf "
-              f"loss or gradient (train.max_nonfinite={tc.max_nonfinite}); they were skipped "
-              f"({int(guard['skipped'])} in all) and the last good state is checkpointed. "
-              "Try a lower train.lr, train.clip_norm, or check the data.", file=sys.stderr)
+        print(
+            f"stopped at step {step}: {int(guard['peak'])} consecutive steps had a NaN/inf "
+            f"loss or gradient (train.max_nonfinite={tc.max_nonfinite}); they were skipped "
+            f"({int(guard['skipped'])} in all) and the last good state is checkpointed. "
+            "Try a lower train.lr, train.clip_norm, or check the data.",
+            file=sys.stderr,
+        )
     if _primary():
         runs.append_metrics(run_dir, {"step": step, "status": status})
         runs.plot_losses(run_dir)
@@ -529,8 +601,10 @@ class _Standardizer:
         return np.asarray(c) * self.control_std + self.control_mean
 
     def to_dict(self) -> dict:
-        return {k: getattr(self, k).tolist()
-                for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+        return {
+            k: getattr(self, k).tolist()
+            for k in ("pose_mean", "pose_std", "control_mean", "control_std")
+        }
 
 
 def load_standardizer(run_dir: str | Path):
@@ -544,8 +618,9 @@ def load_standardizer(run_dir: str | Path):
         return _Standardizer(d)
 
 
-def load_run(run_dir: str | Path, *, checkpoint: str = "best", dataset: Any = None,
-             load_data: bool = True):
+def load_run(
+    run_dir: str | Path, *, checkpoint: str = "best", dataset: Any = None, load_data: bool = True
+):
     """Rebuild ``(module, config, model, dataset)`` from a run directory alone.
 
     ``checkpoint``: "best" (falls back to "latest" if no best exists) or "latest".
@@ -593,33 +668,63 @@ def _split_windows(dataset: Any, split: str):
     return pose.astype(np.float32), control.astype(np.float32)
 
 
-def evaluate_run(run_dir: str | Path, split: str = "test", *, checkpoint: str = "best",
-                 dataset: Any = None, batch_size: int | None = None,
-                 print_table: bool = True) -> list[dict]:
+def evaluate_run(
+    run_dir: str | Path,
+    split: str = "test",
+    *,
+    checkpoint: str = "best",
+    dataset: Any = None,
+    batch_size: int | None = None,
+    print_table: bool = True,
+) -> list[dict]:
     """Score every window of ``split``; write ``eval_<split>.json`` and print the table."""
     module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
     pose, control = _split_windows(dataset, split)
     bs = batch_size or config.train.val_batch_size or config.train.batch_size
-    lls = likelihood.evaluate_windows(module, model, pose, control, batch_size=bs,
-                                      key=_keys(config.train.seed)["eval"],
-                                      evaluate_fn=jitted_evaluate(module))
+    lls = likelihood.evaluate_windows(
+        module,
+        model,
+        pose,
+        control,
+        batch_size=bs,
+        key=_keys(config.train.seed)["eval"],
+        evaluate_fn=jitted_evaluate(module),
+    )
     window = pose.shape[1]
     scopes = getattr(module, "SCOPES", {})
     frames = {k: likelihood.scored_frames(scopes, k, window, config) for k in lls}
     ldpf = float(dataset.standardizer.log_det_per_frame)
     rows = likelihood.likelihood_rows(lls, frames, ldpf, scopes=scopes)
-    likelihood.write_eval(Path(run_dir) / f"eval_{split}.json", rows, split=split,
-                          experiment=module.NAME, window=window, checkpoint=checkpoint,
-                          log_det_per_frame=ldpf)
+    likelihood.write_eval(
+        Path(run_dir) / f"eval_{split}.json",
+        rows,
+        split=split,
+        experiment=module.NAME,
+        window=window,
+        checkpoint=checkpoint,
+        log_det_per_frame=ldpf,
+    )
     if print_table:
-        print(likelihood.format_table(
-            rows, title=f"{module.NAME} — {split} split, {pose.shape[0]} windows of {window} "
-                        f"frames ({Path(run_dir)})"))
+        print(
+            likelihood.format_table(
+                rows,
+                title=f"{module.NAME} — {split} split, {pose.shape[0]} windows of {window} "
+                f"frames ({Path(run_dir)})",
+            )
+        )
     return rows
 
 
-def draw_samples(module: Any, model: Any, standardizer: Any, control: np.ndarray, *,
-                 num: int = 1, temperature: float = 1.0, seed: int = 0) -> np.ndarray:
+def draw_samples(
+    module: Any,
+    model: Any,
+    standardizer: Any,
+    control: np.ndarray,
+    *,
+    num: int = 1,
+    temperature: float = 1.0,
+    seed: int = 0,
+) -> np.ndarray:
     """Sample ``num`` pose sequences (num, T, 63) in metres for one control (T, 3) given
     in data units (m/frame, rad/frame): standardise, one jitted ``module.sample``,
     de-standardise. Raises ``RunError`` if the samples hold NaN/inf."""
@@ -646,15 +751,26 @@ def draw_samples(module: Any, model: Any, standardizer: Any, control: np.ndarray
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags shared by ``python -m experiments.<name>`` and ``motionflows train``."""
     parser.add_argument("--preset", default="quick", help="named config (default: quick)")
-    parser.add_argument("--data", default=None,
-                        help="synthetic | bandai | bandai:DIR | bvh:DIR | DIR")
+    parser.add_argument(
+        "--data", default=None, help="synthetic | bandai | bandai:DIR | bvh:DIR | DIR"
+    )
     parser.add_argument("--steps", type=int, default=None, help="training steps (train.steps)")
-    parser.add_argument("--set", dest="overrides", action="append", nargs="+", default=[],
-                        metavar="KEY=VALUE", help="config override, e.g. train.lr=1e-3")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override, e.g. train.lr=1e-3",
+    )
     parser.add_argument("--run-name", default=None, help="run directory name")
     parser.add_argument("--runs-dir", default="runs", help="root of run directories")
-    parser.add_argument("--resume", action="store_true",
-                        help="continue --run-name (or the latest run) from its checkpoint")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue --run-name (or the latest run) from its checkpoint",
+    )
     parser.add_argument("--no-eval", action="store_true", help="skip the final test table")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -663,27 +779,33 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
     """(config, preset, run_dir) from parsed train flags (resume reads config.json)."""
     overrides = [item for group in args.overrides for item in group]
     if args.resume:
-        run_dir = (Path(args.runs_dir) / module.NAME / args.run_name if args.run_name
-                   else runs.latest_run(args.runs_dir, module.NAME))
+        run_dir = (
+            Path(args.runs_dir) / module.NAME / args.run_name
+            if args.run_name
+            else runs.latest_run(args.runs_dir, module.NAME)
+        )
         if run_dir is None:
             raise RunError(f"no run of {module.NAME} under {args.runs_dir}/ to resume")
         run_dir = runs.check_run_dir(run_dir)
         _, preset, config = cfg.load_config(run_dir / "config.json", module.Config)
     else:
         if args.preset not in module.PRESETS:
-            raise RunError(f"unknown preset {args.preset!r} for {module.NAME}; "
-                           f"available: {sorted(module.PRESETS)}")
+            raise RunError(
+                f"unknown preset {args.preset!r} for {module.NAME}; "
+                f"available: {sorted(module.PRESETS)}"
+            )
         preset, config = args.preset, module.PRESETS[args.preset]
         run_dir = Path(args.runs_dir) / module.NAME / (args.run_name or runs.new_run_name(preset))
     if args.data is not None:
-        config = dataclasses.replace(config,
-                                     data=dataclasses.replace(config.data,
-                                                              **runs.parse_data(args.data)))
+        config = dataclasses.replace(
+            config, data=dataclasses.replace(config.data, **runs.parse_data(args.data))
+        )
     if args.steps is not None:
         if args.steps < 0:
             raise RunError(f"--steps must be >= 0, got {args.steps}")
-        config = dataclasses.replace(config,
-                                     train=dataclasses.replace(config.train, steps=args.steps))
+        config = dataclasses.replace(
+            config, train=dataclasses.replace(config.train, steps=args.steps)
+        )
     try:
         config = cfg.apply_overrides(config, overrides)
     except ValueError as err:
@@ -696,14 +818,24 @@ def run_train(module: Any, args: argparse.Namespace) -> int:
     from motionflows.sharding import initialize_distributed
 
     if initialize_distributed():  # multi-host: MOTIONFLOWS_COORDINATOR etc. (see sharding)
-        print(f"process {jax.process_index()} of {jax.process_count()}, "
-              f"{jax.device_count()} devices in all", file=sys.stderr)
+        print(
+            f"process {jax.process_index()} of {jax.process_count()}, "
+            f"{jax.device_count()} devices in all",
+            file=sys.stderr,
+        )
     module = runs.resolve_experiment(module)
     config, preset, run_dir = configure(module, args)
     print(f"run directory: {run_dir}", file=sys.stderr)
     dataset = config.data.load()
-    result = train(module, config, run_dir=run_dir, preset=preset, resume=args.resume,
-                   dataset=dataset, progress=not args.no_progress)
+    result = train(
+        module,
+        config,
+        run_dir=run_dir,
+        preset=preset,
+        resume=args.resume,
+        dataset=dataset,
+        progress=not args.no_progress,
+    )
     if result.status in ("interrupted", "nonfinite"):
         return 130 if result.status == "interrupted" else 1
     if not args.no_eval and _primary():
@@ -729,8 +861,10 @@ def report_errors(fn, *args) -> int:
 def experiment_main(module: Any, argv: list[str] | None = None) -> int:
     """Command line of ``python -m experiments.<name>``; returns the exit code."""
     name = getattr(module, "NAME", "experiment")
-    parser = argparse.ArgumentParser(prog=f"python -m experiments.{name}",
-                                     description=(module.__doc__ or "").strip().split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog=f"python -m experiments.{name}",
+        description=(module.__doc__ or "").strip().split("\n")[0],
+    )
     add_train_arguments(parser)
     try:
         args = parser.parse_args(argv)

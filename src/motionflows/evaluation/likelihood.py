@@ -186,8 +186,10 @@ def evaluate_windows(
     out: dict[str, list] = {}
     for b, start in enumerate(range(0, n, bs)):
         idx = np.arange(start, start + bs) % n
-        batch = {"pose": np.asarray(pose[idx], np.float32),
-                 "control": np.asarray(control[idx], np.float32)}
+        batch = {
+            "pose": np.asarray(pose[idx], np.float32),
+            "control": np.asarray(control[idx], np.float32),
+        }
         res = fn(model, batch, jax.random.fold_in(key, b))
         keep = min(bs, n - start)
         for k, v in res.items():

@@ -139,9 +139,7 @@ class LinearGaussianAR(nnx.Module):
         chol = self.cholesky()
         y = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
         return (
-            -0.5 * jnp.sum(y**2, -1)
-            - jnp.sum(self.log_diag[...])
-            - 0.5 * self.pose_dim * LOG_2PI
+            -0.5 * jnp.sum(y**2, -1) - jnp.sum(self.log_diag[...]) - 0.5 * self.pose_dim * LOG_2PI
         )
 
     def log_prob(self, pose: jax.Array, control: jax.Array, *, skip: int = 0) -> jax.Array:
@@ -256,7 +254,9 @@ def fit_linear_ar(
     if n <= f:
         warnings.warn(
             f"fit_linear_ar: {n} frames for {f} features per output: the residual covariance "
-            "is degenerate; use more windows, a smaller tau or a larger ridge", stacklevel=2)
+            "is degenerate; use more windows, a smaller tau or a larger ridge",
+            stacklevel=2,
+        )
     # a floor on the eigenvalues keeps Sigma positive definite (degenerate data, rounding)
     evals, evecs = np.linalg.eigh(sigma)
     floor = max(1e-6 * max(float(evals.max()), 1e-12), 1e-10)

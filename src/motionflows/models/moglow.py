@@ -435,8 +435,21 @@ class MoGlow(nnx.Module):
     # -- frame-by-frame maps
 
     def inverse_weights(self) -> Array:
-        """(K, D, D): W_k^-1 of every 1x1 map, by two triangular solves each."""
-        return jax.lax.map(_inv_step, self.flow.steps)
+        """(K, D, D): W_k^-1 = U^-1 L^-1 P^T of every 1x1 map, two triangular solves each."""
+        lin = self.flow.steps.bijectors[1]
+        d = self.pose_dim
+        eye = jnp.eye(d, dtype=jnp.float32)
+        p = jax.lax.stop_gradient(lin.P[...])
+        sign = jax.lax.stop_gradient(lin.sign_s[...])
+        lower = jnp.tril(lin.lower[...], -1) + eye
+        upper = jnp.triu(lin.upper[...], 1) + jax.vmap(jnp.diag)(sign * jnp.exp(lin.log_s[...]))
+
+        def inv(args):
+            p, l, u = args
+            a = solve_triangular(l, p.T, lower=True, unit_diagonal=True)
+            return solve_triangular(u, a, lower=False)
+
+        return jax.lax.map(inv, (p, lower, upper))
 
     def initial_carry(self, batch: int):
         """Zero LSTM states of all K steps: a pytree of (K, batch, H) arrays."""
@@ -621,13 +634,6 @@ class MoGlow(nnx.Module):
 
         _, xs = jax.lax.scan(body, state, jnp.swapaxes(control, 0, 1))
         return jnp.swapaxes(xs, 0, 1)
-
-
-def _inv_step(step) -> Array:
-    """W^-1 = U^-1 L^-1 P^T of one (unstacked) step's ``InvertibleLinear``."""
-    p, l, u = step.bijectors[1]._factors()
-    a = solve_triangular(l, p.T, lower=True, unit_diagonal=True)
-    return solve_triangular(u, a, lower=False)
 
 
 # ----------------------------------------------------------------------------- import

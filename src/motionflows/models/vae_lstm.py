@@ -98,6 +98,8 @@ class VAELSTM(nnx.Module):
       iwae_chunk: how many importance samples run vectorised at once.
       l1_weight: weight of the L1 penalty in the experiment's training loss (0.1).
       elbo_samples: z draws averaged in the experiment's reported ELBO.
+      sampler_iwae_samples: the K values of the sampler-model bound that ``evaluate``
+        reports (``sampler_iwae_<K>``; empty = none).
     """
 
     def __init__(
@@ -117,6 +119,7 @@ class VAELSTM(nnx.Module):
         iwae_chunk: int = 10,
         l1_weight: float = 0.1,
         elbo_samples: int = 1,
+        sampler_iwae_samples: tuple[int, ...] = (),
         rngs: nnx.Rngs,
     ):
         if kernel < 1 or kernel % 2 == 0:
@@ -137,6 +140,7 @@ class VAELSTM(nnx.Module):
         self.iwae_chunk = int(iwae_chunk)
         self.l1_weight = float(l1_weight)
         self.elbo_samples = int(elbo_samples)
+        self.sampler_iwae_samples = tuple(int(k) for k in sampler_iwae_samples)
         self.control_encoder = ConvEncoder(
             CONTROL_DIM, control_hidden, control_features, kernel, dropout=dropout, rngs=rngs
         )
@@ -285,6 +289,38 @@ class VAELSTM(nnx.Module):
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
         logw = self.log_weights(x, c, key, num_samples)
+        return jax.scipy.special.logsumexp(logw, axis=0) - math.log(num_samples)
+
+    def sampler_log_weights(self, x: jax.Array, c: jax.Array, key: jax.Array, num_samples: int):
+        """Importance log-weights for the *sampler's* model (Algorithm 1 plus the output
+        noise): p_rec(x | c) = int N(z_1; 0, I) N(x; m_rec(z_1, c), diag sigma_x^2) dz_1,
+        with m_rec the decoder of the recurrent canvas. Proposal: q(z_1 | x), the
+        inference network's first pooled step. Returns (num_samples, B)."""
+        self._check(x, c)
+        h = self.encode_control(c)
+        mu, log_std = self.posterior(x)
+        mu1, ls1 = mu[:, :1], log_std[:, :1]
+        rest = jnp.zeros((x.shape[0], h.shape[1] - 1, self.latent_dim), mu.dtype)
+
+        def one(k):
+            eps = jax.random.normal(k, mu1.shape, mu1.dtype)
+            z1 = mu1 + jnp.exp(ls1) * eps
+            log_q = (-0.5 * (jnp.square(eps) + LOG_2PI) - ls1).sum(axis=(1, 2))
+            log_p = (-0.5 * (jnp.square(z1) + LOG_2PI)).sum(axis=(1, 2))
+            canvas = self.canvas(jnp.concatenate([z1, rest], axis=1), h, recurrent=True)
+            return self.log_likelihood(x, self.decode(canvas)) + log_p - log_q
+
+        keys = jax.random.split(key, num_samples)
+        return jax.lax.map(one, keys, batch_size=min(self.iwae_chunk, num_samples))
+
+    def sampler_iwae_bound(
+        self, x: jax.Array, c: jax.Array, key: jax.Array, *, num_samples: int = 10
+    ) -> jax.Array:
+        """IWAE lower bound (B,) on log p_rec(x | c), the density of Algorithm 1's model with
+        the learned output noise (see :meth:`sampler_log_weights`). Nats, standardised."""
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+        logw = self.sampler_log_weights(x, c, key, num_samples)
         return jax.scipy.special.logsumexp(logw, axis=0) - math.log(num_samples)
 
     # ------------------------------------------------------------------ sampling

@@ -1,4 +1,4 @@
-"""A tiny deterministic stand-in for ``motionflows.data.MotionDataset`` (tests only)."""
+"""A tiny deterministic stand-in for ``motionflows.data.MotionDataset`` (no tests here)."""
 
 import numpy as np
 
@@ -29,8 +29,10 @@ class FakeStandardizer:
         return np.asarray(c) * self.control_std + self.control_mean
 
     def to_dict(self):
-        return {k: getattr(self, k).tolist()
-                for k in ("pose_mean", "pose_std", "control_mean", "control_std")}
+        return {
+            k: getattr(self, k).tolist()
+            for k in ("pose_mean", "pose_std", "control_mean", "control_std")
+        }
 
 
 class FakeWindows:

@@ -1,0 +1,205 @@
+"""Fixed-length Glow speed: training step, sampling, compile times and memory; prints JSON.
+
+Paper configuration by default (MoGlow paper Sec. 3 / issue: L = 4 levels, K = 32 steps,
+512-wide coupling nets, windows of 80 frames of 63 + 3 dims, batch 64 windows), with the
+coupling nets' convolutions in float32 and in bfloat16 (``compute_dtype``; the flow's
+affine maps, log-dets and base log-probs stay float32). ``--quick`` runs a small
+configuration for a smoke test.
+
+    python benchmarks/glow_fixed_speed.py [--quick] [--dtypes float32,bfloat16] [--repeats N]
+
+Timed: one jitted Adam training step (value_and_grad of the mean NLL per frame, clipping
+as in the ``paper`` preset) and one jitted sampler call that draws the whole batch of
+windows (B x T frames) given the control. Compile times are measured separately (AOT
+``lower().compile()``). Memory: XLA's compiled temp/argument sizes, the device's
+``memory_stats()`` peak where the backend reports one (GPU/TPU), and the process peak RSS
+(``resource.getrusage``; on CPU that is where the arrays live). Parameters are freshly
+initialised (no data-dependent ActNorm init: it does not change the cost of a step).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+
+from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.models.glow import Glow
+
+PAPER = {"levels": 4, "steps": 32, "hidden": 512, "batch": 64, "window": 80}
+QUICK = {"levels": 2, "steps": 4, "hidden": 64, "batch": 64, "window": 32}
+
+
+def machine() -> dict:
+    """CPU model and ISA flags, cores, load average, JAX backend and devices."""
+    cpu, isa = "unknown", []
+    try:
+        with open("/proc/cpuinfo") as f:
+            text = f.read()
+        for line in text.splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+        flags = next((ln for ln in text.splitlines() if ln.startswith("flags")), "")
+        isa = [x for x in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f" {x}" in flags]
+    except OSError:
+        pass
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:
+        cores = os.cpu_count()
+    return {
+        "cpu": cpu,
+        "cores": cores,
+        "isa": isa,
+        "load_average_1_5_15": list(os.getloadavg()),
+        "platform": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+    }
+
+
+def _device_peak_bytes() -> int | None:
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - CPU backends may not implement it
+        return None
+    if not stats:
+        return None
+    return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
+
+
+def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), times
+
+
+def _memory(compiled) -> dict:
+    try:
+        mem = compiled.memory_analysis()
+        return {
+            "temp_bytes": int(mem.temp_size_in_bytes),
+            "argument_bytes": int(mem.argument_size_in_bytes),
+            "output_bytes": int(mem.output_size_in_bytes),
+        }
+    except Exception:  # noqa: BLE001 - not every backend reports it
+        return {}
+
+
+def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array) -> dict:
+    """Time one configuration at one conditioner precision."""
+    k_model, k_pose, k_ctrl, k_sample = jax.random.split(key, 4)
+    t0 = time.perf_counter()
+    model = Glow(
+        POSE_DIM,
+        levels=cfg["levels"],
+        steps=cfg["steps"],
+        hidden=cfg["hidden"],
+        control_dim=CONTROL_DIM,
+        compute_dtype=None if dtype == "float32" else dtype,
+        rngs=nnx.Rngs(k_model),
+    )
+    build_s = time.perf_counter() - t0
+    b, t = cfg["batch"], cfg["window"]
+    pose = jax.random.normal(k_pose, (b, t, POSE_DIM))
+    control = jax.random.normal(k_ctrl, (b, t, CONTROL_DIM))
+    graph, params, rest = nnx.split(model, nnx.Param, ...)
+    n_params = sum(int(x.size) for x in jax.tree.leaves(params))
+    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
+    opt_state = opt.init(params)
+
+    def train_step(p, s, pose, control):
+        def loss(p):
+            m = nnx.merge(graph, p, rest)
+            return -jnp.mean(m.log_prob(pose, control)) / t
+
+        value, grads = jax.value_and_grad(loss)(p)
+        updates, s = opt.update(grads, s, p)
+        return optax.apply_updates(p, updates), s, value
+
+    res: dict = {"dtype": dtype, "params": n_params, "build_s": build_s}
+    t0 = time.perf_counter()
+    compiled = (
+        jax.jit(train_step, donate_argnums=(0, 1)).lower(params, opt_state, pose, control).compile()
+    )
+    res["train_compile_s"] = time.perf_counter() - t0
+    res["train_memory"] = _memory(compiled)
+    state = {"p": params, "s": opt_state}
+
+    def run_train():
+        state["p"], state["s"], value = compiled(state["p"], state["s"], pose, control)
+        return value
+
+    first_loss = float(run_train())  # warm-up
+    res["train_step_s"], res["train_step_s_all"] = _median_time(run_train, repeats)
+    res["train_frames_per_s"] = b * t / res["train_step_s"]
+    res["train_loss_first_last"] = [first_loss, float(run_train())]
+
+    model = nnx.merge(graph, state["p"], rest)
+    sampler = jax.jit(lambda m, c, k: m.sample(k, c))
+    t0 = time.perf_counter()
+    fn = sampler.lower(model, control, k_sample).compile()
+    res["sample_compile_s"] = time.perf_counter() - t0
+    res["sample_memory"] = _memory(fn)
+    out = fn(model, control, k_sample)
+    out.block_until_ready()
+    res["sample_finite"] = bool(jnp.all(jnp.isfinite(out)))
+    res["sample_s"], res["sample_s_all"] = _median_time(
+        lambda: fn(model, control, k_sample), max(repeats, 3)
+    )
+    res["sample_ms_per_frame"] = 1e3 * res["sample_s"] / (b * t)
+    res["device_peak_bytes"] = _device_peak_bytes()
+    res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="small configuration")
+    ap.add_argument("--dtypes", default="float32,bfloat16")
+    ap.add_argument("--repeats", type=int, default=None, help="timed training steps")
+    args = ap.parse_args(argv)
+    cfg = QUICK if args.quick else PAPER
+    repeats = args.repeats or (5 if args.quick else 2)
+    out = {
+        "benchmark": "glow_fixed_speed",
+        "config": {**cfg, "pose_dim": POSE_DIM, "control_dim": CONTROL_DIM},
+        "quick": args.quick,
+        "units": {
+            "train_step_s": "seconds per Adam step on one batch of windows (median)",
+            "sample_s": "seconds to sample the whole batch of windows (median)",
+            "sample_ms_per_frame": "sample_s / (batch * window) in ms",
+            "compile_s": "XLA compile seconds (lower + compile)",
+            "bytes": "bytes",
+        },
+        "machine": machine(),
+        "results": [],
+    }
+    key = jax.random.key(0)
+    for dtype in args.dtypes.split(","):
+        out["results"].append(bench(cfg, dtype.strip(), repeats, key))
+        print(json.dumps(out["results"][-1]), file=sys.stderr, flush=True)
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["machine"]["load_average_after"] = list(os.getloadavg())
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,181 @@
+"""MoGlow speed: training step, sampling ms/frame, compile times, memory; prints JSON.
+
+Paper configuration by default (63 + 3 dims, tau 10, K 16, 2 x 512 LSTM, batch 100 windows of
+80 frames = 70 targets), float32 and bfloat16 conditioner matmuls. ``--quick`` runs a small
+configuration (for CI / a smoke test). Reference (official PyTorch code, 2-core AVX-512 CPU):
+12.6 s per training step, 49.5 ms/frame at batch 1, 78.5 ms per frame-step at batch 64.
+
+    python benchmarks/moglow_speed.py [--quick] [--dtypes float32,bfloat16] [--repeats N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+
+from motionflows.bijectors import initialize_from_data
+from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.models.moglow import MoGlow
+
+PAPER = {"K": 16, "hidden": 512, "layers": 2, "tau": 10, "batch": 100, "window": 80,
+         "sample_frames": 60}
+QUICK = {"K": 4, "hidden": 64, "layers": 1, "tau": 10, "batch": 16, "window": 40,
+         "sample_frames": 20}
+REFERENCE = {"train_step_s": 12.6, "sample_ms_per_frame_b1": 49.5,
+             "sample_ms_per_frame_b64": 78.5}
+TARGETS = {"train_step_s_float32": 12.6, "train_step_s_bfloat16": 4.0,
+           "sample_ms_per_frame_b1": 10.0, "sample_ms_per_frame_b64": 20.0}
+
+
+def machine() -> dict:
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+        with open("/proc/cpuinfo") as f:
+            flags = next((ln for ln in f if ln.startswith("flags")), "")
+        isa = [x for x in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f" {x}" in flags]
+    except OSError:
+        isa = []
+    try:
+        load = os.getloadavg()
+    except OSError:
+        load = None
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "isa": isa,
+        "load_average_1_5_15": load,
+        "jax": jax.__version__,
+        "backend": jax.default_backend(),
+        "devices": [str(d) for d in jax.devices()],
+        "python": platform.python_version(),
+    }
+
+
+def _time(fn, repeats: int) -> list[float]:
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def bench(cfg: dict, dtype: str, repeats: int, key) -> dict:
+    cd = None if dtype == "float32" else dtype
+    k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
+    model = MoGlow(POSE_DIM, CONTROL_DIM, tau=cfg["tau"], num_steps=cfg["K"],
+                   hidden=cfg["hidden"], num_layers=cfg["layers"], dropout=0.95,
+                   compute_dtype=cd, rngs=k_model)
+    b, t = cfg["batch"], cfg["window"]
+    kp, kc = jax.random.split(k_data)
+    pose = jax.random.normal(kp, (b, t, POSE_DIM))
+    control = jax.random.normal(kc, (b, t, CONTROL_DIM))
+    model = initialize_from_data(model, pose[:8], context=control[:8])
+    graph, params, rest = nnx.split(model, nnx.Param, ...)
+    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
+    opt_state = opt.init(params)
+    n_targets = t - cfg["tau"]
+
+    def train_step(p, s, pose, control, key):
+        def loss(p):
+            m = nnx.merge(graph, p, rest)
+            return -jnp.mean(m.log_prob(pose, control, key=key)) / n_targets
+
+        value, grads = jax.value_and_grad(loss)(p)
+        updates, s = opt.update(grads, s, p)
+        return optax.apply_updates(p, updates), s, value
+
+    res: dict = {"dtype": dtype}
+    t0 = time.perf_counter()
+    compiled = jax.jit(train_step).lower(params, opt_state, pose, control, k_drop).compile()
+    res["train_compile_s"] = time.perf_counter() - t0
+    try:
+        mem = compiled.memory_analysis()
+        res["train_temp_bytes"] = int(mem.temp_size_in_bytes)
+        res["train_argument_bytes"] = int(mem.argument_size_in_bytes)
+    except Exception:  # noqa: BLE001 - not every backend reports it
+        pass
+    state = {"p": params, "s": opt_state}
+
+    def run_train():
+        state["p"], state["s"], value = compiled(state["p"], state["s"], pose, control, k_drop)
+        return value
+
+    run_train()  # warm-up
+    times = _time(run_train, repeats)
+    res["train_step_s"] = statistics.median(times)
+    res["train_step_s_all"] = times
+    res["train_loss"] = float(run_train())
+
+    n = cfg["sample_frames"]
+    for batch in (1, 64):
+        ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
+        sampler = jax.jit(lambda m, c, k: m.sample(k, c))
+        t0 = time.perf_counter()
+        fn = sampler.lower(model, ctrl, k_sample).compile()
+        res[f"sample_compile_s_b{batch}"] = time.perf_counter() - t0
+        fn(model, ctrl, k_sample).block_until_ready()
+        st = _time(lambda fn=fn, ctrl=ctrl: fn(model, ctrl, k_sample), max(repeats, 3))
+        res[f"sample_ms_per_frame_b{batch}"] = 1e3 * statistics.median(st) / n
+        # streaming: one jitted stream_step per frame from the host (game-loop latency)
+        step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k))
+        stream = model.init_stream(batch)
+        x_t, stream = step(model, stream, ctrl[:, 0], k_sample)
+        x_t.block_until_ready()
+        lat = []
+        for i in range(1, n):
+            t0 = time.perf_counter()
+            x_t, stream = step(model, stream, ctrl[:, i], k_sample)
+            x_t.block_until_ready()
+            lat.append(time.perf_counter() - t0)
+        res[f"stream_step_ms_b{batch}_median"] = 1e3 * statistics.median(lat)
+        res[f"stream_step_ms_b{batch}_p95"] = 1e3 * sorted(lat)[int(0.95 * (len(lat) - 1))]
+    res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="small configuration")
+    ap.add_argument("--dtypes", default="float32,bfloat16")
+    ap.add_argument("--repeats", type=int, default=None, help="timed training steps")
+    args = ap.parse_args(argv)
+    cfg = QUICK if args.quick else PAPER
+    repeats = args.repeats or (3 if args.quick else 2)
+    out = {
+        "benchmark": "moglow_speed",
+        "config": {**cfg, "pose_dim": POSE_DIM, "control_dim": CONTROL_DIM,
+                   "targets_per_window": cfg["window"] - cfg["tau"]},
+        "quick": args.quick,
+        "machine": machine(),
+        "reference_official_pytorch": REFERENCE,
+        "targets": TARGETS,
+        "results": [],
+    }
+    key = jax.random.key(0)
+    for dtype in args.dtypes.split(","):
+        out["results"].append(bench(cfg, dtype.strip(), repeats, key))
+        print(json.dumps(out["results"][-1]), file=sys.stderr, flush=True)
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
