@@ -98,7 +98,7 @@ PRESETS: dict[str, Config] = {
     "quick": Config(
         data=DataConfig(window=40, hop=8, synthetic_clips=60),
         train=TrainConfig(
-            steps=1500,
+            steps=800,
             batch_size=32,
             lr=2e-3,
             warmup_steps=100,
@@ -106,10 +106,10 @@ PRESETS: dict[str, Config] = {
             min_lr_ratio=0.1,
             clip_value=5.0,
             clip_norm=100.0,
-            eval_every=500,
+            eval_every=400,
             eval_batches=4,
             log_every=25,
-            checkpoint_every=500,
+            checkpoint_every=400,
         ),
         K=4,
         hidden=128,

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
-from test_training_fakes import FakeDataset
+from test_training_fakes import FakeDataset, MinimalDataset
 
 import experiments.baselines as baselines
 from motionflows.config import TrainConfig
@@ -101,13 +101,14 @@ def test_guard_skips_nan_steps_and_stops_after_max_nonfinite(tmp_path):
         CONFIG, train=dataclasses.replace(CONFIG.train, max_nonfinite=2, steps=8)
     )
     # one bad batch: skipped and counted, the run finishes
-    one = train(
-        fake, cfg, run_dir=tmp_path / "one", dataset=FakeDataset(nan_at={2}), progress=False
-    )
+    minimal = MinimalDataset(FakeDataset(nan_at={2}))  # only .batch and .standardizer
+    one = train(fake, cfg, run_dir=tmp_path / "one", dataset=minimal, progress=False)
     assert one.status == "finished"
     rows = [r for r in read_metrics(tmp_path / "one") if "skipped" in r]
     assert rows[-1]["skipped"] == 1 and rows[2]["loss"] is None  # step 3 had no finite loss
     assert all(np.all(np.isfinite(p)) for p in _params(one.model))
+    rows = evaluate_run(tmp_path / "one", "test", dataset=minimal, print_table=False)
+    assert rows[0]["scope"] == "window" and rows[0]["windows"] == 4  # eval_batches x B
 
     # bad from batch 3 on: steps 4 and 5 skipped, the run stops at 5 with the step-3 state
     bad = train(

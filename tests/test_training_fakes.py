@@ -72,3 +72,18 @@ class FakeDataset:
             pose = pose.copy()
             pose[0, 0, 0] = np.nan
         return {"pose": pose, "control": control}
+
+
+class MinimalStandardizer:
+    def __init__(self, inner):
+        self.log_det_per_frame = inner.log_det_per_frame
+        self.to_dict = inner.to_dict
+
+
+class MinimalDataset:
+    """Only what the issue promises of a dataset: ``batch`` and ``standardizer``
+    (``log_det_per_frame``, ``to_dict``)."""
+
+    def __init__(self, inner):
+        self.batch = inner.batch
+        self.standardizer = MinimalStandardizer(inner.standardizer)

@@ -259,7 +259,12 @@ def describe_machine() -> dict:
     except OSError:
         pass
     devices = jax.devices()
+    try:
+        load = "load average {:.1f} / {:.1f} / {:.1f} (1 / 5 / 15 min)".format(*os.getloadavg())
+    except OSError:
+        load = "load unknown"
     return {
+        "load": load,
         "cpu": cpu,
         "cores": cores,
         "memory": memory,
@@ -735,7 +740,7 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
     import jax
 
     entry: dict[str, Any] = {}
-    key = jax.random.PRNGKey(seed)
+    key = jax.random.key(seed)
     with _Section(entry, "error", strict, progress):
         exp = load_experiment(name)
         config, prov = bench_config(name, budget, data, exp)
@@ -941,8 +946,6 @@ def run_benchmark(
     every model on a split by performer and reports its train/test NLL. ``strict`` raises on
     the first failure instead of recording it in the report.
     """
-    import jax
-
     from motionflows import bench_report
 
     wall0 = time.perf_counter()
@@ -978,6 +981,7 @@ def run_benchmark(
         "seed": int(seed),
         "bootstrap": sizes["bootstrap"],
         "motion_windows": len(motion_idx),
+        "diversity_samples": sizes["diversity"],
         "train_windows_note": (
             f"at most {sizes['train_windows']} training windows (a fixed random subset; "
             "mirrored copies included where the pipeline augments)"),
@@ -1041,7 +1045,6 @@ def run_benchmark(
     bench_report.write_markdown(results, out / "BENCHMARK.md")
     _log(progress, f"wrote {out / 'BENCHMARK.md'} and {out / 'results.json'} "
                    f"in {results['wall_seconds']:.0f} s")
-    del jax
     return results
 
 

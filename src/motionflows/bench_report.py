@@ -201,7 +201,8 @@ def write_markdown(results: dict, path: str | Path) -> str:
                f"of wall time; budget `{results['budget']}` = {results['budget_note']}.  ")
     out.append(f"Machine: {m['cpu']} ({m['cores']} cores visible), {m['memory']}, "
                f"{m['platform']}; JAX {m['jax']} ({m['backend']}: {m['devices']}), "
-               f"Flax {m['flax']}, Python {m['python']}.\n")
+               f"Flax {m['flax']}, Python {m['python']}; {m.get('load', 'load unknown')} at "
+               "the start (timings on a shared machine are slower than on an idle one).\n")
     info = data.get("info", {})
     out.append("## Data\n")
     out.append(f"Source `{data['config']['source']}`"
@@ -239,8 +240,9 @@ def write_markdown(results: dict, path: str | Path) -> str:
     out.append("## Motion quality of samples\n")
     out.append(
         f"Samples drawn for the controls of {results['motion_windows']} test windows at "
-        f"temperature {results['temperature']:g} (every model), converted to metres; the first "
-        "row scores the ground-truth test motion the same way. "
+        f"temperature {results['temperature']:g} (every model), converted to metres; diversity "
+        f"from {results.get('diversity_samples', 'several')} samples under one control; the "
+        "first row scores the ground-truth test motion the same way. "
         + results.get("motion_note", "") + "\n")
     out.append(motion_table(results, order) + "\n")
     out.append("## Speed\n")

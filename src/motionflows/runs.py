@@ -102,7 +102,7 @@ def read_metrics(run_dir: str | Path) -> list[dict]:
 
 def truncate_metrics(run_dir: str | Path, step: int) -> None:
     """Drop metric rows after ``step`` (written after the checkpoint a resume starts from)."""
-    rows = [r for r in read_metrics(run_dir) if r.get("step", 0) <= step]
+    rows = [r for r in read_metrics(run_dir) if r.get("step", 0) <= step and "status" not in r]
     path = Path(run_dir) / "metrics.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
 

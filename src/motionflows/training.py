@@ -218,8 +218,8 @@ def validation_windows(config: Any, dataset: Any, split: str = "val"):
     ``split`` drawn once with seed 0 (all of them if the split is smaller), standardised."""
     tc = config.train
     bs = tc.val_batch_size or tc.batch_size
-    pose, control = _split_windows(dataset, split)
     limit = max(1, tc.eval_batches) * bs
+    pose, control = _split_windows(dataset, split, batch_size=bs, fallback_batches=tc.eval_batches)
     if len(pose) > limit:
         idx = np.sort(np.random.default_rng(0).permutation(len(pose))[:limit])
         pose, control = pose[idx], control[idx]
@@ -648,9 +648,31 @@ def load_run(
     return module, config, model, dataset
 
 
-def _split_windows(dataset: Any, split: str):
+def _split_windows(
+    dataset: Any, split: str, *, batch_size: int = 32, fallback_batches: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """Standardised (pose, control) of every complete window of ``split`` (windows padded
-    past the end of a short take, ``WindowSet.valid`` False somewhere, are left out)."""
+    past the end of a short take, ``WindowSet.valid`` False somewhere, are left out).
+
+    A dataset without window arrays or a standardiser that can normalise them is read
+    through ``dataset.batch(split, batch_size, seed=0, index=i)`` instead (enough batches
+    to cover the split once, or ``fallback_batches`` if its size is unknown)."""
+    try:
+        return _split_arrays(dataset, split)
+    except AttributeError:
+        pass
+    try:
+        n = len(getattr(dataset, split).pose)
+        count = -(-n // batch_size)
+    except (AttributeError, TypeError):
+        n, count = None, max(1, fallback_batches)
+    batches = [dataset.batch(split, batch_size, seed=0, index=i) for i in range(count)]
+    pose = np.concatenate([np.asarray(b["pose"], np.float32) for b in batches])[:n]
+    control = np.concatenate([np.asarray(b["control"], np.float32) for b in batches])[:n]
+    return pose, control
+
+
+def _split_arrays(dataset: Any, split: str) -> tuple[np.ndarray, np.ndarray]:
     ws = dataset.split(split) if hasattr(dataset, "split") else getattr(dataset, split)
     if hasattr(dataset, "arrays"):
         arr = dataset.arrays(split)
@@ -679,8 +701,10 @@ def evaluate_run(
 ) -> list[dict]:
     """Score every window of ``split``; write ``eval_<split>.json`` and print the table."""
     module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
-    pose, control = _split_windows(dataset, split)
     bs = batch_size or config.train.val_batch_size or config.train.batch_size
+    pose, control = _split_windows(
+        dataset, split, batch_size=bs, fallback_batches=config.train.eval_batches
+    )
     lls = likelihood.evaluate_windows(
         module,
         model,
