@@ -23,6 +23,8 @@ from flax import nnx
 from motionflows import bijectors as bj
 from motionflows.nets import MLP, coupling_mlp
 
+pytestmark = pytest.mark.usefixtures("fast_compilation")
+
 T, D, C = 4, 5, 2  # odd D exercises the floor/ceil halves
 K_STEPS = 3
 
@@ -85,9 +87,7 @@ REGISTRY: dict[str, Case] = {
     "dense_linear": Case(lambda r: bj.DenseLinear(D, rngs=r)),
     "permute": Case(lambda r: bj.Permute.random(D, key=r.params())),
     "reverse": Case(lambda r: bj.Reverse(D)),
-    "affine_coupling_mlp": Case(
-        lambda r: bj.AffineCoupling(D, coupling_mlp(D, hidden=8, rngs=r))
-    ),
+    "affine_coupling_mlp": Case(lambda r: bj.AffineCoupling(D, coupling_mlp(D, hidden=8, rngs=r))),
     "affine_coupling_mlp_context": Case(
         lambda r: bj.AffineCoupling(D, coupling_mlp(D, context_features=C, hidden=8, rngs=r)),
         uses_context=True,

@@ -88,6 +88,18 @@ def test_resume_after_ctrl_c_gives_identical_loss_sequence(tmp_path):
     assert a == b
     for x, y in zip(_params(full.model), _params(resumed.model), strict=True):
         np.testing.assert_array_equal(x, y)
+
+    # a KeyboardInterrupt raised by code inside the loop also leaves a checkpoint
+    def raise_interrupt(step, out):
+        if step == 3:
+            raise KeyboardInterrupt
+
+    part = train(
+        fake, CONFIG, run_dir=tmp_path / "c", dataset=data, progress=False, on_step=raise_interrupt
+    )
+    assert part.status == "interrupted" and part.step == 4
+    train(fake, CONFIG, run_dir=tmp_path / "c", dataset=data, progress=False, resume=True)
+    assert _losses(tmp_path / "c") == a
     # the loss went down and the plot exists
     assert a[-1][1] < a[0][1]
     assert (tmp_path / "a" / "loss.png").is_file()

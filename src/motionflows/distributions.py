@@ -88,7 +88,8 @@ class _Base(nnx.Module):
         k = len(self.event_shape)
         shape = tuple(getattr(x, "shape", ()))
         ok = len(shape) >= k and all(
-            e is None or s == e for s, e in zip(shape[len(shape) - k :], self.event_shape)
+            e is None or s == e
+            for s, e in zip(shape[len(shape) - k :], self.event_shape, strict=True)
         )
         if not ok:
             want = ", ".join("?" if e is None else str(e) for e in self.event_shape)
@@ -114,8 +115,8 @@ class _Base(nnx.Module):
     def mode(self) -> Array:
         """The mode (= loc, or zeros) with shape batch_shape + event_shape."""
         shape = self.batch_shape + self._concrete_event()
-        return jnp.zeros(shape, jnp.float32) if self.loc is None else jnp.broadcast_to(
-            self.loc, shape
+        return (
+            jnp.zeros(shape, jnp.float32) if self.loc is None else jnp.broadcast_to(self.loc, shape)
         )
 
     def sample(

@@ -262,5 +262,8 @@ def format_runs(runs: list[dict]) -> str:
             f"{r['experiment']:<14} {r['run']:<28} {str(r['preset']):<10} "
             f"{r['step']:>7} {val:>13} {at:>7}  {r['status']}"
         )
-    lines.append("best val NLL: nats/frame in metres (validation windows, 'window' scope)")
+    lines.append(
+        "best val NLL: nats/frame in metres on validation windows ('window' scope, else the "
+        "model's first scope, e.g. the VAE-LSTM's ELBO bound)"
+    )
     return "\n".join(lines)

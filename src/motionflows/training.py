@@ -475,79 +475,100 @@ def _train_loop(
     pending: list = []
     t_log, step_log = time.perf_counter(), start
     t_plot = t_log
-    status, last_row, step = "finished", {}, start
+    status, last_row, frames = "finished", {}, 0
+    completed = start  # steps whose update is in params / opt_state
+
+    def log(done):
+        """Average the pending step outputs into one metrics row (one host sync)."""
+        nonlocal pending, t_log, step_log, last_row
+        outs = jax.device_get(pending)
+        now = time.perf_counter()
+        rate = (done - step_log) / max(now - t_log, 1e-9)
+        t_log, step_log, pending = now, done, []
+        ok = [o for o in outs if bool(o["finite"])]
+        row = {"step": done}
+        for k in outs[-1]:
+            if k == "finite":
+                continue
+            vals = [_scalar(o[k]) for o in ok]
+            vals = [v for v in vals if isinstance(v, int | float)]
+            row[k] = float(np.mean(vals)) if vals else None
+        row.update(
+            {
+                "lr": float(schedule(done - 1)),
+                "steps_per_s": rate,
+                "frames_per_s": rate * frames,
+                "skipped": int(guard["skipped"]),
+                "nonfinite_run": int(guard["consecutive"]),
+            }
+        )
+        last_row = row
+        if _primary():
+            runs.append_metrics(run_dir, row)
+        loss_txt = f"{row['loss']:.4f}" if row["loss"] is not None else "nan"
+        bar.update(done, f"loss {loss_txt} {rate:.2f} it/s")
+
     with _StopFlag() as stop:
-        for step in range(start, tc.steps):
-            if stop.requested:
-                status = "interrupted"
-                break
-            batch = dataset.batch("train", tc.batch_size, seed=tc.seed, index=step)
-            frames = int(np.prod(np.shape(batch["pose"])[:2]))
-            batch = shard_batch(batch, mesh)
-            params, opt_state, guard, out = step_fn(
-                params, rest, opt_state, guard, batch, jax.random.fold_in(keys["train"], step)
-            )
-            pending.append(out)
-            if on_step is not None:
-                on_step(step, out)
-            done = step + 1
-            if done % tc.log_every == 0 or done == tc.steps:
-                outs = jax.device_get(pending)
-                now = time.perf_counter()
-                rate = (done - step_log) / max(now - t_log, 1e-9)
-                t_log, step_log, pending = now, done, []
-                ok = [o for o in outs if bool(o["finite"])]
-                row = {"step": done}
-                for k in outs[-1]:
-                    if k == "finite":
-                        continue
-                    vals = [_scalar(o[k]) for o in ok]
-                    vals = [v for v in vals if isinstance(v, int | float)]
-                    row[k] = float(np.mean(vals)) if vals else None
-                row.update(
-                    {
-                        "lr": float(schedule(done - 1)),
-                        "steps_per_s": rate,
-                        "frames_per_s": rate * frames,
-                        "skipped": int(guard["skipped"]),
-                        "nonfinite_run": int(guard["consecutive"]),
-                    }
-                )
-                last_row = row
-                if _primary():
-                    runs.append_metrics(run_dir, row)
-                loss_txt = f"{row['loss']:.4f}" if row["loss"] is not None else "nan"
-                bar.update(done, f"loss {loss_txt} {rate:.2f} it/s")
-                if int(guard["peak"]) >= tc.max_nonfinite:
-                    status = "nonfinite"
-                    step = done
+        try:
+            for step in range(start, tc.steps):
+                if stop.requested:
+                    status = "interrupted"
                     break
-            if done % tc.eval_every == 0 or done == tc.steps:
-                val = validate(
-                    module,
-                    config,
-                    current_model(),
-                    dataset,
-                    key=keys["eval"],
-                    evaluate_fn=eval_fn,
-                    windows=val_windows,
-                )
-                if _primary():
-                    runs.append_metrics(
-                        run_dir, {"step": done, **{k: _scalar(v) for k, v in val.items()}}
+                batch = dataset.batch("train", tc.batch_size, seed=tc.seed, index=step)
+                frames = int(np.prod(np.shape(batch["pose"])[:2]))
+                batch = shard_batch(batch, mesh)
+                key = jax.random.fold_in(keys["train"], step)
+                params, opt_state, guard, out = step_fn(params, rest, opt_state, guard, batch, key)
+                completed = done = step + 1
+                pending.append(out)
+                if on_step is not None:
+                    on_step(step, out)
+                if done % tc.log_every == 0 or done == tc.steps:
+                    log(done)
+                    if int(guard["peak"]) >= tc.max_nonfinite:
+                        status = "nonfinite"
+                        break
+                if done % tc.eval_every == 0 or done == tc.steps:
+                    val = validate(
+                        module,
+                        config,
+                        current_model(),
+                        dataset,
+                        key=keys["eval"],
+                        evaluate_fn=eval_fn,
+                        windows=val_windows,
                     )
-                    if time.perf_counter() - t_plot > 60.0:  # plotting costs ~1 s
-                        runs.plot_losses(run_dir)
-                        t_plot = time.perf_counter()
-                if math.isfinite(val["val_nll"]) and (best is None or val["val_nll"] < best):
-                    best = val["val_nll"]
-                    save(done, "best", val)
-            if done % tc.checkpoint_every == 0 or done == tc.steps:
-                save(done)
-            if not pending:  # steps/s measure training only, not validation or checkpoints
-                t_log = time.perf_counter()
-        else:
-            step = tc.steps
+                    if _primary():
+                        runs.append_metrics(
+                            run_dir, {"step": done, **{k: _scalar(v) for k, v in val.items()}}
+                        )
+                        if time.perf_counter() - t_plot > 60.0:  # plotting costs ~1 s
+                            runs.plot_losses(run_dir)
+                            t_plot = time.perf_counter()
+                    val_nll = val["val_nll"]
+                    if math.isfinite(val_nll) and (best is None or val_nll < best):
+                        best = val_nll
+                        save(done, "best", val)
+                if done % tc.checkpoint_every == 0 or done == tc.steps:
+                    save(done)
+                if not pending:  # steps/s measure training only, not validation or saving
+                    t_log = time.perf_counter()
+        except KeyboardInterrupt:  # raised by a second Ctrl-C, or by code called in the loop
+            status = "interrupted"
+            if any(
+                getattr(x, "is_deleted", lambda: False)()
+                for x in jax.tree_util.tree_leaves((params, opt_state))
+            ):  # interrupted inside the step, after its inputs were donated
+                bar.close()
+                print(
+                    f"\ninterrupted inside a step: no new checkpoint (the latest is step "
+                    f"{ckpt.latest_step()})",
+                    file=sys.stderr,
+                )
+                raise
+    step = completed
+    if pending:  # outputs of steps not logged yet (an interrupt between log points)
+        log(step)
     bar.close()
     if status == "interrupted":
         save(step)

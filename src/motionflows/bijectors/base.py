@@ -275,9 +275,11 @@ class Scan(Bijector):
     Ways to build it:
 
     * ``Scan(factory, num_steps, rngs=rngs)``: ``factory(rngs: nnx.Rngs) -> Bijector``
-      builds one step; it is called under ``nnx.vmap`` with one split key per step, so the
-      steps share their structure (static attributes) and differ only in parameter values.
-      The factory must not keep ``rngs`` inside the step (no dropout).
+      builds one step; it is called once per key of ``jax.random.split(key, K)`` (as
+      ``factory(nnx.Rngs(k))``) and the K results are stacked: the same random draws as
+      ``nnx.vmap`` over those keys, at a fraction of the eager compile cost. The steps
+      must share their structure (classes, sizes, static attributes) and differ only in
+      array values; the factory must not keep ``rngs`` inside the step (no dropout).
     * ``Scan(stacked, num_steps)``: an existing module whose every array has a leading axis
       of size ``num_steps`` (e.g. built with ``nnx.vmap``).
     * ``Scan([step_0, ..., step_{K-1}])``: stacks equally structured step modules.
@@ -355,9 +357,7 @@ class Scan(Bijector):
         if is_initializing():
             return self.unrolled().forward_and_log_det(x, context=context)
 
-        (x, total, _), _ = jax.lax.scan(
-            _forward_body, (x, _zeros_batch(x), context), self.steps
-        )
+        (x, total, _), _ = jax.lax.scan(_forward_body, (x, _zeros_batch(x), context), self.steps)
         return x, total
 
     def inverse_and_log_det(self, y, *, context=None):

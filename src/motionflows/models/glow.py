@@ -93,6 +93,7 @@ class Glow(nnx.Module):
       steps: K, flow steps per level (run by ``Scan``).
       hidden: width of the coupling nets' hidden convolutions (512 in the paper).
       control_dim: channels of the control (3); 0 or None = unconditional model.
+      conditional: shorthand; False forces control_dim = 0 (None: decided by control_dim).
       prior: "standard" (paper) or "learned" (glow-pytorch's conditional split prior).
       compute_dtype: None/"float32", or "bfloat16" for the coupling nets' convolutions.
       coupling_eps: floor of the coupling scale (see ``AffineCoupling``).
@@ -110,11 +111,14 @@ class Glow(nnx.Module):
         steps: int = 32,
         hidden: int = 512,
         control_dim: int | None = CONTROL_DIM,
+        conditional: bool | None = None,
         prior: str = "standard",
         compute_dtype: Any = None,
         coupling_eps: float = 1e-6,
         rngs: nnx.Rngs,
     ):
+        if conditional is not None:
+            control_dim = (control_dim or CONTROL_DIM) if conditional else 0
         if int(levels) < 1 or int(steps) < 1 or int(hidden) < 1:
             raise ValueError(
                 f"Glow needs levels >= 1, steps >= 1 and hidden >= 1, got levels={levels}, "
