@@ -76,7 +76,7 @@ def _time(fn, repeats: int) -> list[float]:
     return out
 
 
-def bench(cfg: dict, dtype: str, repeats: int, key) -> dict:
+def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
     cd = None if dtype == "float32" else dtype
     k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
     model = MoGlow(POSE_DIM, CONTROL_DIM, tau=cfg["tau"], num_steps=cfg["K"],
@@ -117,11 +117,16 @@ def bench(cfg: dict, dtype: str, repeats: int, key) -> dict:
         state["p"], state["s"], value = compiled(state["p"], state["s"], pose, control, k_drop)
         return value
 
-    run_train()  # warm-up
-    times = _time(run_train, repeats)
+    for _ in range(warmup):
+        run_train()
+    times, value = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        value = jax.block_until_ready(run_train())
+        times.append(time.perf_counter() - t0)
     res["train_step_s"] = statistics.median(times)
     res["train_step_s_all"] = times
-    res["train_loss"] = float(run_train())
+    res["train_loss"] = float(value)
 
     n = cfg["sample_frames"]
     for batch in (1, 64):
@@ -155,6 +160,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="small configuration")
     ap.add_argument("--dtypes", default="float32,bfloat16")
     ap.add_argument("--repeats", type=int, default=None, help="timed training steps")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed training steps first")
     args = ap.parse_args(argv)
     cfg = QUICK if args.quick else PAPER
     repeats = args.repeats or (3 if args.quick else 2)
@@ -170,7 +176,7 @@ def main(argv=None) -> int:
     }
     key = jax.random.key(0)
     for dtype in args.dtypes.split(","):
-        out["results"].append(bench(cfg, dtype.strip(), repeats, key))
+        out["results"].append(bench(cfg, dtype.strip(), repeats, key, args.warmup))
         print(json.dumps(out["results"][-1]), file=sys.stderr, flush=True)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps(out, indent=2))

@@ -756,6 +756,12 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
                      steps=int(config.train.steps))
         _, run_config, model, dataset = _load(run_dir, dataset)
         entry["params"] = count_params(model)
+        if int(run_config.train.steps) > 0:
+            # place the model as the training loop does (replicated over the data mesh), so
+            # the evaluate compiled for its validation is reused (same shapes and shardings)
+            from motionflows.sharding import data_mesh, replicate
+
+            model = replicate(model, data_mesh())
         # the same jitted function and batch shape as the trainer's validation: one compile
         evaluate_fn = jax.jit(exp.evaluate)
         tc = run_config.train

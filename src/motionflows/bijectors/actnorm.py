@@ -41,19 +41,25 @@ class ActNorm(Bijector):
 
     def forward_and_log_det(self, x, *, context=None):
         check_event(x, self.num_channels, "ActNorm")
+        if is_initializing():  # reached through Inverse(...) in a data -> latent pass
+            mean, std = self._stats(x)
+            self.logs[...] = jnp.log(std + ACTNORM_STD_EPS)
+            self.bias[...] = mean / (std + ACTNORM_STD_EPS)
         y = x * jnp.exp(-self.logs[...]) - self.bias[...]
         return y, -self._log_det(x)
 
     def inverse_and_log_det(self, y, *, context=None):
         check_event(y, self.num_channels, "ActNorm")
         if is_initializing():
-            self._init_from(y)
+            mean, std = self._stats(y)
+            self.bias[...] = -mean
+            self.logs[...] = jnp.log(1.0 / (std + ACTNORM_STD_EPS))
         z = (y + self.bias[...]) * jnp.exp(self.logs[...])
         return z, self._log_det(y)
 
-    def _init_from(self, y: Array) -> None:
-        """Set bias = -mean, logs = log(1 / (std + 1e-6)) over all axes but channels."""
-        if isinstance(y, jax.core.Tracer):
+    def _stats(self, u: Array) -> tuple[Array, Array]:
+        """Per-channel mean and biased std over all leading axes and time (init mode)."""
+        if isinstance(u, jax.core.Tracer):
             raise ValueError(
                 "initialize_from_data reached an ActNorm inside a JAX transformation "
                 "(jax.jit, jax.lax.scan, jax.vmap, ...). Data-dependent initialisation runs "
@@ -61,11 +67,10 @@ class ActNorm(Bijector):
                 "Python when motionflows.bijectors.is_initializing() is True (bijectors.Scan "
                 "does this by itself)."
             )
-        flat = jnp.reshape(y, (-1, self.num_channels)).astype(jnp.float32)
+        flat = jnp.reshape(u, (-1, self.num_channels)).astype(jnp.float32)
         mean = jnp.mean(flat, axis=0)
         std = jnp.sqrt(jnp.mean(jnp.square(flat - mean), axis=0))  # biased variance
-        self.bias[...] = -mean
-        self.logs[...] = jnp.log(1.0 / (std + ACTNORM_STD_EPS))
+        return mean, std
 
 
 def initialize_from_data(model: Any, x: Array, *, context: Array | None = None) -> Any:
@@ -83,7 +88,9 @@ def initialize_from_data(model: Any, x: Array, *, context: Array | None = None) 
 
     with mean and (biased) std per channel over all leading axes and time, and then applies
     itself, so each ActNorm sees the outputs of the already-initialised layers before it.
-    ``Chain`` and ``Inverse`` need nothing special; ``Scan`` unrolls its stacked steps
+    An ActNorm reached in its forward direction (inside an ``Inverse``) instead sets
+    logs = log(std(u) + 1e-6), bias = mean(u) / (std(u) + 1e-6), which also makes its output
+    zero-mean and unit-std. ``Chain`` and ``Inverse`` need nothing special; ``Scan`` unrolls its stacked steps
     eagerly and writes the results back into the stack. Any model whose
     ``inverse_and_log_det`` calls these bijectors eagerly is covered; code that wraps
     ActNorms in its own ``jax.jit``/``jax.lax.scan`` must loop in Python while

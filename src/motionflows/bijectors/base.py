@@ -102,6 +102,12 @@ def check_event(x: Any, num_channels: int | None, name: str, *, what: str = "inp
             f"{name} expects (..., T, {d}) {what} (a time axis and a channel axis), "
             f"got shape {tuple(shape)}; add a time axis, e.g. x[..., None, :] for one frame"
         )
+    dtype = getattr(x, "dtype", None)
+    if dtype is not None and not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(
+            f"{name} expects floating-point {what} (float32), got dtype {dtype}; "
+            f"convert with x.astype(jnp.float32)"
+        )
     if num_channels is not None and shape[-1] != num_channels:
         raise ValueError(
             f"{name} expects (..., T, {num_channels}) {what}, got shape {tuple(shape)} "
@@ -231,7 +237,9 @@ class Inverse(Bijector):
         return self.bijector.forward_and_log_det(y, context=context)
 
 
-def _as_key(rngs: Any) -> Array:
+def _as_key(rngs: Any, key: Any = None) -> Array:
+    if key is not None:
+        return key
     if isinstance(rngs, nnx.Rngs):
         return rngs.params()
     if rngs is None:
@@ -296,6 +304,7 @@ class Scan(Bijector):
         num_steps: int | None = None,
         *,
         rngs: nnx.Rngs | Array | None = None,
+        key: Array | None = None,
     ):
         if isinstance(steps, (list, tuple)):
             if not steps:
@@ -325,7 +334,7 @@ class Scan(Bijector):
         elif callable(steps):
             if num_steps is None or int(num_steps) < 1:
                 raise ValueError(f"Scan(factory, num_steps) needs num_steps >= 1, got {num_steps}")
-            keys = jax.random.split(_as_key(rngs), int(num_steps))
+            keys = jax.random.split(_as_key(rngs, key), int(num_steps))
             # Same values as nnx.vmap(lambda k: factory(nnx.Rngs(k)))(keys), but built one
             # step at a time and stacked: eagerly, the second and later steps reuse the
             # compiled primitives of the first, which makes construction several times
@@ -355,26 +364,27 @@ class Scan(Bijector):
 
     def forward_and_log_det(self, x, *, context=None):
         if is_initializing():
-            return self.unrolled().forward_and_log_det(x, context=context)
+            return self._run_eagerly(x, context, forward=True)
 
         (x, total, _), _ = jax.lax.scan(_forward_body, (x, _zeros_batch(x), context), self.steps)
         return x, total
 
     def inverse_and_log_det(self, y, *, context=None):
         if is_initializing():
-            return self._inverse_init(y, context)
+            return self._run_eagerly(y, context, forward=False)
 
         (y, total, _), _ = jax.lax.scan(
             _inverse_body, (y, _zeros_batch(y), context), self.steps, reverse=True
         )
         return y, total
 
-    def _inverse_init(self, y, context):
-        """Init mode: run the steps eagerly (data -> latent order) and write them back."""
+    def _run_eagerly(self, h, context, *, forward: bool):
+        """Init mode: run the steps one by one in Python and write them back (stacked)."""
         steps = [self.step(k) for k in range(self.num_steps)]
         total = None
-        for step in reversed(steps):
-            y, ld = step.inverse_and_log_det(y, context=context)
+        for step in steps if forward else reversed(steps):
+            run = step.forward_and_log_det if forward else step.inverse_and_log_det
+            h, ld = run(h, context=context)
             total = ld if total is None else total + ld
         nnx.update(self.steps, nnx.state(_stack(steps)))
-        return y, total
+        return h, total

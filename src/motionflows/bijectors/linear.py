@@ -18,7 +18,11 @@ Array = jax.Array
 __all__ = ["DenseLinear", "InvertibleLinear", "Permute", "Reverse"]
 
 
-def _as_key(rngs: nnx.Rngs | Array) -> Array:
+def _as_key(rngs: nnx.Rngs | Array | None, key: Array | None, name: str) -> Array:
+    if key is not None:
+        return key
+    if rngs is None:
+        raise ValueError(f"{name} needs rngs=nnx.Rngs(...) (or key=jax.random.key(...))")
     return rngs.params() if isinstance(rngs, nnx.Rngs) else rngs
 
 
@@ -40,15 +44,18 @@ class InvertibleLinear(Bijector):
     latent -> data (``forward``):  x_t = W^-1 z_t,    log|det| = -T * sum(log_s)
 
     The latent -> data map uses two triangular solves (never a dense inverse). Initialised
-    from the LU decomposition of a random orthogonal matrix drawn from ``rngs``.
+    from the LU decomposition of a random orthogonal matrix drawn from ``rngs`` (an
+    ``nnx.Rngs``; a raw ``key=`` works too).
     """
 
-    def __init__(self, num_channels: int, *, rngs: nnx.Rngs | Array):
+    def __init__(
+        self, num_channels: int, *, rngs: nnx.Rngs | Array | None = None, key: Array | None = None
+    ):
         d = int(num_channels)
         if d < 1:
             raise ValueError(f"InvertibleLinear needs num_channels >= 1, got {num_channels}")
         self.num_channels = d
-        q = jax.random.orthogonal(_as_key(rngs), d, dtype=jnp.float32)
+        q = jax.random.orthogonal(_as_key(rngs, key, "InvertibleLinear"), d, dtype=jnp.float32)
         p, l, u = _lu(q)
         s = jnp.diag(u)
         self.P = Fixed(p.astype(jnp.float32))
@@ -98,12 +105,15 @@ class DenseLinear(Bijector):
     nothing keeps W invertible during training.
     """
 
-    def __init__(self, num_channels: int, *, rngs: nnx.Rngs | Array):
+    def __init__(
+        self, num_channels: int, *, rngs: nnx.Rngs | Array | None = None, key: Array | None = None
+    ):
         d = int(num_channels)
         if d < 1:
             raise ValueError(f"DenseLinear needs num_channels >= 1, got {num_channels}")
         self.num_channels = d
-        self.weight = nnx.Param(jax.random.orthogonal(_as_key(rngs), d, dtype=jnp.float32))
+        w0 = jax.random.orthogonal(_as_key(rngs, key, "DenseLinear"), d, dtype=jnp.float32)
+        self.weight = nnx.Param(w0)
 
     def _log_det(self, x: Array) -> Array:
         _, logabs = jnp.linalg.slogdet(self.weight[...])
