@@ -289,6 +289,15 @@ def test_wrong_shapes_raise_clear_value_error(name):
             bij.forward_and_log_det(jnp.zeros(shape), context=c)
 
 
+def test_integer_input_and_mismatched_steps_raise():
+    with pytest.raises(ValueError, match="floating-point"):
+        bj.ActNorm(D).inverse(jnp.zeros((T, D), jnp.int32))
+    with pytest.raises(ValueError, match="identical structure"):
+        bj.Scan([bj.ActNorm(D), bj.ActNorm(D + 1)])
+    with pytest.raises(ValueError, match="identical structure"):
+        bj.Scan([bj.Permute([0, 1, 2]), bj.Permute([2, 1, 0])])
+
+
 @pytest.mark.parametrize("name", CONTEXT_NAMES)
 def test_misaligned_context_raises(name):
     bij = built(name)
@@ -351,6 +360,17 @@ def test_initialize_constant_channel_is_finite():
     assert bool(jnp.all(jnp.isfinite(new.logs[...])))
     assert bool(jnp.all(jnp.isfinite(z))) and bool(jnp.all(jnp.isfinite(ld)))
     np.testing.assert_allclose(np.asarray(z[..., 1]), 0.0, atol=1e-4)
+
+
+def test_initialize_through_inverse():
+    """An ActNorm reached forwards (inside Inverse) also normalises its output."""
+    x = 3.0 * jax.random.normal(jax.random.key(6), (8, T, D)) - 4.0
+    for model in [bj.Inverse(bj.ActNorm(D)), bj.Inverse(bj.Scan(_glow_step, 2, rngs=nnx.Rngs(1)))]:
+        ctx = None if isinstance(model.bijector, bj.ActNorm) else jnp.zeros((8, T, C))
+        new = bj.initialize_from_data(model, x, context=ctx)
+        mean, std = _channel_stats(new.inverse(x, context=ctx))
+        np.testing.assert_allclose(mean, 0.0, atol=1e-4)
+        np.testing.assert_allclose(std, 1.0, atol=1e-3)
 
 
 def test_initialize_through_scan_and_custom_model():

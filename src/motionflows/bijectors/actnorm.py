@@ -90,8 +90,9 @@ def initialize_from_data(model: Any, x: Array, *, context: Array | None = None) 
     itself, so each ActNorm sees the outputs of the already-initialised layers before it.
     An ActNorm reached in its forward direction (inside an ``Inverse``) instead sets
     logs = log(std(u) + 1e-6), bias = mean(u) / (std(u) + 1e-6), which also makes its output
-    zero-mean and unit-std. ``Chain`` and ``Inverse`` need nothing special; ``Scan`` unrolls its stacked steps
-    eagerly and writes the results back into the stack. Any model whose
+    zero-mean and unit-std. ``Chain`` and ``Inverse`` need nothing special; ``Scan``
+    unrolls its stacked steps eagerly (in either direction) and writes the results back
+    into the stack. Any model whose
     ``inverse_and_log_det`` calls these bijectors eagerly is covered; code that wraps
     ActNorms in its own ``jax.jit``/``jax.lax.scan`` must loop in Python while
     :func:`motionflows.bijectors.is_initializing` is True (otherwise a clear ``ValueError``
