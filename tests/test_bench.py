@@ -38,8 +38,13 @@ MODELS = _available()
 def smoke(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
     results = bench.run_benchmark(
-        data="synthetic", models=MODELS, budget="smoke", out=root / "out",
-        runs_dir=root / "runs", strict=True, progress=None,
+        data="synthetic",
+        models=MODELS,
+        budget="smoke",
+        out=root / "out",
+        runs_dir=root / "runs",
+        strict=True,
+        progress=None,
     )
     return root, results
 
@@ -59,9 +64,17 @@ def test_report_files_and_structure(smoke):
     for name in MODELS:
         assert (out / "gifs" / f"{name}.gif").stat().st_size > 0
     md = (out / "BENCHMARK.md").read_text()
-    for header in ("nats/frame (m)", "bits/frame (std)", "scored frames", "temperature 1",
-                   "sample frames/s, batch 64", "ground truth", saved["command"],
-                   saved["machine"]["cpu"], "JAX"):
+    for header in (
+        "nats/frame (m)",
+        "bits/frame (std)",
+        "scored frames",
+        "temperature 1",
+        "sample frames/s, batch 64",
+        "ground truth",
+        saved["command"],
+        saved["machine"]["cpu"],
+        "JAX",
+    ):
         assert header in md, header
     for name in MODELS:
         assert f"**{name}**" in md
@@ -91,8 +104,11 @@ def test_likelihood_units_and_ranges(smoke):
     # the standardiser's log-Jacobian of 63 values with cm-scale stds: tens of nats/frame
     assert 0 < log_det < 1000
     # identical frames: every model's window scope covers the whole window
-    windows = {results["models"][n]["likelihood"].get("window", {}).get("frames")
-               for n in MODELS if n != "vae_lstm"}
+    windows = {
+        results["models"][n]["likelihood"].get("window", {}).get("frames")
+        for n in MODELS
+        if n != "vae_lstm"
+    }
     assert windows == {results["window"]}
 
 
@@ -159,8 +175,14 @@ def test_motion_quality_and_speed(smoke):
 def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     root, first = smoke
     again = bench.run_benchmark(
-        data="synthetic", models="gaussian,linear_ar", budget="smoke", out=tmp_path / "out",
-        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
+        data="synthetic",
+        models="gaussian,linear_ar",
+        budget="smoke",
+        out=tmp_path / "out",
+        runs_dir=root / "runs",
+        strict=True,
+        gifs=False,
+        progress=None,
     )
     for name in ("gaussian", "linear_ar"):
         entry = again["models"][name]

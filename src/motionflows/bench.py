@@ -406,35 +406,54 @@ def _standardized(dataset, windows, idx: np.ndarray) -> tuple[np.ndarray, np.nda
     return pose, control
 
 
-def score_likelihood(exp, model, config, dataset, split: str, *, limit: int, key,
-                     num_bootstrap: int, evaluate_fn=None, chunk: int = EVAL_CHUNK) -> dict:
+def score_likelihood(
+    exp,
+    model,
+    config,
+    dataset,
+    split: str,
+    *,
+    limit: int,
+    key,
+    num_bootstrap: int,
+    evaluate_fn=None,
+    chunk: int = EVAL_CHUNK,
+) -> dict:
     """Likelihood table rows of one split: ``{scope: row}`` (see ``likelihood_rows``)."""
     from motionflows.evaluation.likelihood import likelihood_rows, scored_frames
 
     windows = dataset.split(split)
     idx = _pick(windows, limit, seed=1)
     if len(idx) == 0:
-        raise RunError(f"the {split} split has no complete windows; use more data or a "
-                       "shorter window")
+        raise RunError(
+            f"the {split} split has no complete windows; use more data or a shorter window"
+        )
     pose, control = _standardized(dataset, windows, idx)
-    lls = _evaluate_windows(exp, model, pose, control, key=key, evaluate_fn=evaluate_fn,
-                            chunk=chunk)
+    lls = _evaluate_windows(
+        exp, model, pose, control, key=key, evaluate_fn=evaluate_fn, chunk=chunk
+    )
     scopes = getattr(exp, "SCOPES", {}) or {}
     if scopes:
         lls = {k: v for k, v in lls.items() if k in scopes}
     window = pose.shape[1]
     frames = {k: int(scored_frames(scopes, k, window, config)) for k in lls}
-    rows = likelihood_rows(lls, frames, float(dataset.standardizer.log_det_per_frame),
-                           scopes=scopes, num_bootstrap=num_bootstrap, seed=0)
+    rows = likelihood_rows(
+        lls,
+        frames,
+        float(dataset.standardizer.log_det_per_frame),
+        scopes=scopes,
+        num_bootstrap=num_bootstrap,
+        seed=0,
+    )
     return {r["scope"]: r for r in rows}
 
 
-def _evaluate_windows(exp, model, pose, control, *, key, evaluate_fn=None,
-                      chunk: int = EVAL_CHUNK):
+def _evaluate_windows(exp, model, pose, control, *, key, evaluate_fn=None, chunk: int = EVAL_CHUNK):
     from motionflows.evaluation.likelihood import evaluate_windows
 
-    return evaluate_windows(exp, model, pose, control, batch_size=chunk, key=key,
-                            evaluate_fn=evaluate_fn)
+    return evaluate_windows(
+        exp, model, pose, control, batch_size=chunk, key=key, evaluate_fn=evaluate_fn
+    )
 
 
 def merge_splits(test: dict, train: dict) -> dict:
@@ -451,9 +470,20 @@ def merge_splits(test: dict, train: dict) -> dict:
     return out
 
 
-def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: bool,
-                  evaluate_fn=None, chunk: int = EVAL_CHUNK, window_scorer=None,
-                  full_window_mean: float | None = None) -> dict:
+def per_frame_nll(
+    exp,
+    model,
+    dataset,
+    *,
+    limit: int,
+    key,
+    points: int,
+    causal: bool,
+    evaluate_fn=None,
+    chunk: int = EVAL_CHUNK,
+    window_scorer=None,
+    full_window_mean: float | None = None,
+) -> dict:
     """Test NLL (nats/frame, metres) against the frame position in the window.
 
     Exact in both routes used: the model's own per-frame log-densities (``frame_log_prob``,
@@ -481,13 +511,23 @@ def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: 
         fn = jax.jit(frames)
         parts = []
         for start in range(0, len(pose), EVAL_CHUNK):
-            parts.append(np.asarray(fn(model, pose[start:start + EVAL_CHUNK],
-                                       control[start:start + EVAL_CHUNK]), np.float64))
+            parts.append(
+                np.asarray(
+                    fn(
+                        model, pose[start : start + EVAL_CHUNK], control[start : start + EVAL_CHUNK]
+                    ),
+                    np.float64,
+                )
+            )
         ll = np.concatenate(parts)  # (N, T)
         if ll.shape == pose.shape[:2]:
             nll = -(ll.mean(0) + log_det)
-            return {"available": True, "method": "exact per frame",
-                    "positions": list(range(t_len)), "nats_per_frame_metres": nll.tolist()}
+            return {
+                "available": True,
+                "method": "exact per frame",
+                "positions": list(range(t_len)),
+                "nats_per_frame_metres": nll.tolist(),
+            }
     if not causal:
         return {"available": False, "method": "none"}
     ends = sorted(set(np.linspace(0, t_len, points + 1).round().astype(int).tolist()) - {0})
@@ -505,8 +545,15 @@ def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: 
         if end == t_len and full_window_mean is not None:
             totals.append(float(full_window_mean))  # already scored on these windows
             continue
-        lls = _evaluate_windows(exp, model, pose[:, :end], control[:, :end], key=key,
-                                evaluate_fn=evaluate_fn, chunk=chunk)
+        lls = _evaluate_windows(
+            exp,
+            model,
+            pose[:, :end],
+            control[:, :end],
+            key=key,
+            evaluate_fn=evaluate_fn,
+            chunk=chunk,
+        )
         totals.append(float(np.mean(lls["window"])))
     positions, nll = [], []
     starts = [0] + ends[:-1]
@@ -514,8 +561,12 @@ def per_frame_nll(exp, model, dataset, *, limit: int, key, points: int, causal: 
         per = -((totals[k + 1] - totals[k]) / (e - s) + log_det)
         positions.append((s + e - 1) / 2)
         nll.append(per)
-    return {"available": True, "method": f"prefix differences, {len(ends)} blocks",
-            "positions": positions, "nats_per_frame_metres": nll}
+    return {
+        "available": True,
+        "method": f"prefix differences, {len(ends)} blocks",
+        "positions": positions,
+        "nats_per_frame_metres": nll,
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -537,8 +588,11 @@ def make_sampler(exp, temperature: float):
         nonlocal jitted
         try:
             return jitted(model, control, key)
-        except (jax.errors.ConcretizationTypeError, jax.errors.TracerBoolConversionError,
-                jax.errors.TracerArrayConversionError):
+        except (
+            jax.errors.ConcretizationTypeError,
+            jax.errors.TracerBoolConversionError,
+            jax.errors.TracerArrayConversionError,
+        ):
             jitted = sample
             return sample(model, control, key)
 
@@ -660,9 +714,19 @@ def _log(progress, msg: str) -> None:
         progress(f"[bench {time.strftime('%H:%M:%S')}] {msg}")
 
 
-def obtain_run(model_name: str, exp, config, provenance: dict, *, runs_dir: Path,
-               budget: str, data_tag: str, retrain: bool, progress,
-               dataset=None) -> tuple[Path, bool, float]:
+def obtain_run(
+    model_name: str,
+    exp,
+    config,
+    provenance: dict,
+    *,
+    runs_dir: Path,
+    budget: str,
+    data_tag: str,
+    retrain: bool,
+    progress,
+    dataset=None,
+) -> tuple[Path, bool, float]:
     """(run_dir, reused, training seconds): reuse a finished identical run or train one."""
     experiment = provenance["experiment"]
     if not retrain:
@@ -672,11 +736,13 @@ def obtain_run(model_name: str, exp, config, provenance: dict, *, runs_dir: Path
             return found, True, 0.0
     name = f"bench-{model_name}-{budget}-{data_tag}-{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir = runs_dir / experiment / name
-    _log(progress, f"{model_name}: training {provenance['preset']} preset "
-                   f"({config.train.steps} steps) -> {run_dir}")
+    _log(
+        progress,
+        f"{model_name}: training {provenance['preset']} preset "
+        f"({config.train.steps} steps) -> {run_dir}",
+    )
     t0 = time.perf_counter()
-    _train(exp, config, run_dir, preset=provenance["preset"], progress=progress,
-           dataset=dataset)
+    _train(exp, config, run_dir, preset=provenance["preset"], progress=progress, dataset=dataset)
     return run_dir, False, time.perf_counter() - t0
 
 
@@ -684,11 +750,13 @@ def _train(exp, config, run_dir: Path, *, preset: str, progress, dataset=None) -
     """Train through ``motionflows.training.train`` (its Python API)."""
     from motionflows import training
 
-    result = training.train(exp, config, run_dir=run_dir, preset=preset,
-                            progress=bool(progress), dataset=dataset)
+    result = training.train(
+        exp, config, run_dir=run_dir, preset=preset, progress=bool(progress), dataset=dataset
+    )
     if result.status not in ("finished", "fitted"):
-        raise RunError(f"training {run_dir} ended with status {result.status!r}; see its "
-                       "metrics.jsonl")
+        raise RunError(
+            f"training {run_dir} ended with status {result.status!r}; see its metrics.jsonl"
+        )
 
 
 def _load(run_dir: Path, dataset=None):
@@ -713,16 +781,21 @@ class _Section:
     def __exit__(self, kind, err, tb):
         timings = self.entry.setdefault("timings", {})
         name = self.key.replace("_error", "") if self.key != "error" else "train+likelihood"
-        timings[name] = {"wall_s": time.perf_counter() - self.t0,
-                         "cpu_s": time.process_time() - self.c0}
+        timings[name] = {
+            "wall_s": time.perf_counter() - self.t0,
+            "cpu_s": time.process_time() - self.c0,
+        }
         if err is None or not isinstance(err, Exception):
             return False
         import traceback
 
         text = f"{kind.__name__}: {err}"
         self.entry[self.key] = text
-        _log(self.progress, f"FAILED ({self.key}): {text}\n"
-             + "".join(traceback.format_exception(kind, err, tb))[-2000:])
+        _log(
+            self.progress,
+            f"FAILED ({self.key}): {text}\n"
+            + "".join(traceback.format_exception(kind, err, tb))[-2000:],
+        )
         return not self.strict
 
 
@@ -731,10 +804,22 @@ def _frames_label(row: dict, window: int) -> str:
     return f"{n} (frames {window - n + 1}..{window})"
 
 
-def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_dir: Path,
-                temperature: float, seed: int, retrain: bool, strict: bool, progress,
-                motion_idx: np.ndarray | None = None, likelihood_only: bool = False,
-                dataset=None) -> dict:
+def bench_model(
+    name: str,
+    *,
+    data: DataConfig,
+    budget: str,
+    sizes: dict,
+    runs_dir: Path,
+    temperature: float,
+    seed: int,
+    retrain: bool,
+    strict: bool,
+    progress,
+    motion_idx: np.ndarray | None = None,
+    likelihood_only: bool = False,
+    dataset=None,
+) -> dict:
     """Everything the report holds about one model; ``entry["_samples"]`` (metres, not saved
     to JSON) keeps the motion samples for the GIFs."""
     import jax
@@ -748,12 +833,24 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
         entry["config"] = to_dict(config)
         c0 = time.process_time()
         run_dir, reused, secs = obtain_run(
-            name, exp, config, prov, runs_dir=Path(runs_dir), budget=budget,
-            data_tag=_data_tag(data), retrain=retrain, progress=progress, dataset=dataset)
-        entry.setdefault("timings", {})["train"] = {"wall_s": secs,
-                                                    "cpu_s": time.process_time() - c0}
-        entry.update(run_dir=str(run_dir), reused=reused, train_seconds=secs,
-                     steps=int(config.train.steps))
+            name,
+            exp,
+            config,
+            prov,
+            runs_dir=Path(runs_dir),
+            budget=budget,
+            data_tag=_data_tag(data),
+            retrain=retrain,
+            progress=progress,
+            dataset=dataset,
+        )
+        entry.setdefault("timings", {})["train"] = {
+            "wall_s": secs,
+            "cpu_s": time.process_time() - c0,
+        }
+        entry.update(
+            run_dir=str(run_dir), reused=reused, train_seconds=secs, steps=int(config.train.steps)
+        )
         _, run_config, model, dataset = _load(run_dir, dataset)
         entry["params"] = count_params(model)
         if int(run_config.train.steps) > 0:
@@ -765,18 +862,38 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
         # the same jitted function and batch shape as the trainer's validation: one compile
         evaluate_fn = jax.jit(exp.evaluate)
         tc = run_config.train
-        chunk = min(getattr(tc, "val_batch_size", None) or tc.batch_size or EVAL_CHUNK,
-                    len(complete_windows(dataset.test)), sizes["eval_windows"],
-                    len(complete_windows(dataset.train)), sizes["train_windows"])
+        chunk = min(
+            getattr(tc, "val_batch_size", None) or tc.batch_size or EVAL_CHUNK,
+            len(complete_windows(dataset.test)),
+            sizes["eval_windows"],
+            len(complete_windows(dataset.train)),
+            sizes["train_windows"],
+        )
         _log(progress, f"{name}: likelihood on test and train windows")
-        test = score_likelihood(exp, model, run_config, dataset, "test",
-                                limit=sizes["eval_windows"], key=jax.random.fold_in(key, 1),
-                                num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn,
-                                chunk=chunk)
-        train = score_likelihood(exp, model, run_config, dataset, "train",
-                                 limit=sizes["train_windows"], key=jax.random.fold_in(key, 2),
-                                 num_bootstrap=sizes["bootstrap"], evaluate_fn=evaluate_fn,
-                                 chunk=chunk)
+        test = score_likelihood(
+            exp,
+            model,
+            run_config,
+            dataset,
+            "test",
+            limit=sizes["eval_windows"],
+            key=jax.random.fold_in(key, 1),
+            num_bootstrap=sizes["bootstrap"],
+            evaluate_fn=evaluate_fn,
+            chunk=chunk,
+        )
+        train = score_likelihood(
+            exp,
+            model,
+            run_config,
+            dataset,
+            "train",
+            limit=sizes["train_windows"],
+            key=jax.random.fold_in(key, 2),
+            num_bootstrap=sizes["bootstrap"],
+            evaluate_fn=evaluate_fn,
+            chunk=chunk,
+        )
         window = int(np.asarray(dataset.test.pose).shape[1])
         entry["likelihood"] = merge_splits(test, train)
         for lik in entry["likelihood"].values():
@@ -789,10 +906,17 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
         full_mean = None
         if window_row is not None:
             n = window_row["scored_frames_per_window"]
-            full_mean = -(window_row["nats_per_frame_metres"]
-                          + float(dataset.standardizer.log_det_per_frame)) * n
-        entry["speed"] = {"train_frames_per_s": train_speed(run_dir),
-                          "fit_seconds": fit_seconds(run_dir)}
+            full_mean = (
+                -(
+                    window_row["nats_per_frame_metres"]
+                    + float(dataset.standardizer.log_det_per_frame)
+                )
+                * n
+            )
+        entry["speed"] = {
+            "train_frames_per_s": train_speed(run_dir),
+            "fit_seconds": fit_seconds(run_dir),
+        }
     if "error" in entry:
         return entry
 
@@ -801,18 +925,27 @@ def bench_model(name: str, *, data: DataConfig, budget: str, sizes: dict, runs_d
             entry["per_frame_nll"] = {"available": False, "method": PER_FRAME_UNAVAILABLE[name]}
         else:
             entry["per_frame_nll"] = per_frame_nll(
-                exp, model, dataset, limit=sizes["eval_windows"], key=jax.random.fold_in(key, 3),
-                points=sizes["prefix_points"], causal=name in CAUSAL_MODELS,
-                evaluate_fn=evaluate_fn, chunk=chunk,
-                window_scorer=WINDOW_SCORERS.get(name), full_window_mean=full_mean)
+                exp,
+                model,
+                dataset,
+                limit=sizes["eval_windows"],
+                key=jax.random.fold_in(key, 3),
+                points=sizes["prefix_points"],
+                causal=name in CAUSAL_MODELS,
+                evaluate_fn=evaluate_fn,
+                chunk=chunk,
+                window_scorer=WINDOW_SCORERS.get(name),
+                full_window_mean=full_mean,
+            )
 
     sampler = make_sampler(exp, temperature)
     with _Section(entry, "speed_error", strict, progress):
         _log(progress, f"{name}: sampling speed at batch 1 and 64")
         _, ctrl = _standardized(dataset, dataset.test, motion_idx)
         for b in (1, EVAL_CHUNK):
-            sp = time_sampler(sampler, model, ctrl, b, jax.random.fold_in(key, 10 + b),
-                              sizes["speed_repeats"])
+            sp = time_sampler(
+                sampler, model, ctrl, b, jax.random.fold_in(key, 10 + b), sizes["speed_repeats"]
+            )
             entry["speed"][f"sample_frames_per_s_b{b}"] = sp["frames_per_s"]
             entry["speed"][f"compile_s_b{b}"] = sp["compile_s"]
 
@@ -887,8 +1020,9 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
     out: dict[str, Any] = dict(mm.motion_quality(samples_m, control_m, fps=fps))
     out["fd_pose"] = mm.frechet_pose_distance(reference_m, samples_m)
     out["fd_window3"] = mm.frechet_window_distance(reference_m, samples_m, frames=3)
-    out["diversity"] = (None if diversity_m is None
-                        else mm.diversity(np.asarray(diversity_m)[:, None]))
+    out["diversity"] = (
+        None if diversity_m is None else mm.diversity(np.asarray(diversity_m)[:, None])
+    )
     window = samples_m.shape[1]
     frames = [f for f in mm.prediction_frames(fps) if f < window]
     if not frames:
@@ -897,9 +1031,13 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
     motion_err = mm.motion_error(samples_m, reference_m, control_m, frames=frames)
     out["pose_error"] = float(np.mean(pose_err))
     out["motion_error"] = float(np.mean(motion_err))
-    out["prediction"] = {"frames": frames, "seconds": [f / fps for f in frames],
-                         "pose_error": pose_err.tolist(), "motion_error": motion_err.tolist(),
-                         "num_samples": 1}
+    out["prediction"] = {
+        "frames": frames,
+        "seconds": [f / fps for f in frames],
+        "pose_error": pose_err.tolist(),
+        "motion_error": motion_err.tolist(),
+        "num_samples": 1,
+    }
     return out
 
 
@@ -924,8 +1062,10 @@ BUDGET_NOTES = {
 
 
 def _command(data: str, models: Sequence[str], budget: str, out: str, extra: str = "") -> str:
-    return (f"motionflows bench --data {data} --models {','.join(models)} --budget {budget} "
-            f"--out {out}{extra}")
+    return (
+        f"motionflows bench --data {data} --models {','.join(models)} --budget {budget} "
+        f"--out {out}{extra}"
+    )
 
 
 def run_benchmark(
@@ -957,8 +1097,9 @@ def run_benchmark(
     wall0 = time.perf_counter()
     if budget not in BUDGETS:
         raise RunError(f"--budget {budget!r}: choose from {list(BUDGETS)}")
-    if not (isinstance(temperature, int | float) and math.isfinite(temperature)
-            and temperature >= 0):
+    if not (
+        isinstance(temperature, int | float) and math.isfinite(temperature) and temperature >= 0
+    ):
         raise ValueError(f"--temperature must be a finite number >= 0, got {temperature!r}")
     names = parse_models(models)
     data_cfg = parse_data_spec(data, budget)
@@ -970,8 +1111,10 @@ def run_benchmark(
     _log(progress, f"loading {data} data ({data_cfg.source}, window {data_cfg.window})")
     dataset = data_cfg.load()
     if len(complete_windows(dataset.test)) < 2:
-        raise RunError(f"--data {data}: the test split has fewer than 2 complete windows; "
-                       "use more takes or a shorter window")
+        raise RunError(
+            f"--data {data}: the test split has fewer than 2 complete windows; "
+            "use more takes or a shorter window"
+        )
     motion_idx = _pick(dataset.test, sizes["motion_windows"], seed=2)
     gt_m = np.asarray(dataset.test.pose, np.float32)[motion_idx]
     control_m = np.asarray(dataset.test.control, np.float32)[motion_idx]
@@ -990,7 +1133,8 @@ def run_benchmark(
         "diversity_samples": sizes["diversity"],
         "train_windows_note": (
             f"at most {sizes['train_windows']} training windows (a fixed random subset; "
-            "mirrored copies included where the pipeline augments)"),
+            "mirrored copies included where the pipeline augments)"
+        ),
         "machine": describe_machine(),
         "model_order": list(names),
         "models": {},
@@ -1006,10 +1150,20 @@ def run_benchmark(
     for name in names:
         _log(progress, f"== {name}")
         t0 = time.perf_counter()
-        entry = bench_model(name, data=data_cfg, budget=budget, sizes=sizes, runs_dir=runs_dir,
-                            dataset=dataset,
-                            temperature=temperature, seed=seed, retrain=retrain, strict=strict,
-                            progress=progress, motion_idx=motion_idx)
+        entry = bench_model(
+            name,
+            data=data_cfg,
+            budget=budget,
+            sizes=sizes,
+            runs_dir=runs_dir,
+            dataset=dataset,
+            temperature=temperature,
+            seed=seed,
+            retrain=retrain,
+            strict=strict,
+            progress=progress,
+            motion_idx=motion_idx,
+        )
         if "_samples" in entry:
             samples[name] = entry.pop("_samples")
         entry["bench_seconds"] = time.perf_counter() - t0
@@ -1019,8 +1173,8 @@ def run_benchmark(
         performer_split = data_cfg.source == "bandai"
     if performer_split:
         results["performer_split"] = _performer_split(
-            names, data_cfg, budget, sizes, runs_dir, temperature, seed, retrain, strict,
-            progress)
+            names, data_cfg, budget, sizes, runs_dir, temperature, seed, retrain, strict, progress
+        )
 
     plots: dict[str, Any] = {}
     per_frame_notes = {}
@@ -1040,17 +1194,25 @@ def run_benchmark(
         for name, s in samples.items():
             with _Section(results["models"][name], "gif_error", strict, progress):
                 path = out / "gifs" / f"{name}.gif"
-                render_gif(s[0, :n_frames], gt_m[0, :n_frames], control_m[0, :n_frames], path,
-                           float(data_cfg.fps),
-                           f"{name} sample (T={temperature:g}) | faded: ground truth")
+                render_gif(
+                    s[0, :n_frames],
+                    gt_m[0, :n_frames],
+                    control_m[0, :n_frames],
+                    path,
+                    float(data_cfg.fps),
+                    f"{name} sample (T={temperature:g}) | faded: ground truth",
+                )
                 plots["gifs"][name] = f"gifs/{name}.gif"
     results["plots"] = plots
     results["wall_seconds"] = time.perf_counter() - wall0
     results = _jsonable(results)
     (out / "results.json").write_text(json.dumps(results, indent=2) + "\n")
     bench_report.write_markdown(results, out / "BENCHMARK.md")
-    _log(progress, f"wrote {out / 'BENCHMARK.md'} and {out / 'results.json'} "
-                   f"in {results['wall_seconds']:.0f} s")
+    _log(
+        progress,
+        f"wrote {out / 'BENCHMARK.md'} and {out / 'results.json'} "
+        f"in {results['wall_seconds']:.0f} s",
+    )
     return results
 
 
@@ -1063,8 +1225,9 @@ def _dataset_info(dataset) -> dict:
     return _jsonable(info)
 
 
-def _performer_split(names, data_cfg, budget, sizes, runs_dir, temperature, seed, retrain,
-                     strict, progress) -> dict:
+def _performer_split(
+    names, data_cfg, budget, sizes, runs_dir, temperature, seed, retrain, strict, progress
+) -> dict:
     """Retrain every model on a split by performer and score train/test likelihood."""
     data_p = dataclasses.replace(data_cfg, split_by="performer")
     split: dict[str, Any] = {"config": to_dict(data_p), "models": {}}
@@ -1082,9 +1245,19 @@ def _performer_split(names, data_cfg, budget, sizes, runs_dir, temperature, seed
     for name in names:
         _log(progress, f"== {name} (split by performer)")
         split["models"][name] = bench_model(
-            name, data=data_p, budget=budget, sizes=sizes, runs_dir=runs_dir,
-            temperature=temperature, seed=seed, retrain=retrain, strict=strict,
-            progress=progress, likelihood_only=True, dataset=ds)
+            name,
+            data=data_p,
+            budget=budget,
+            sizes=sizes,
+            runs_dir=runs_dir,
+            temperature=temperature,
+            seed=seed,
+            retrain=retrain,
+            strict=strict,
+            progress=progress,
+            likelihood_only=True,
+            dataset=ds,
+        )
     return split
 
 
@@ -1112,34 +1285,58 @@ def estimate_training(
     names = parse_models(models)
     data_cfg = parse_data_spec(data, budget)
     dataset = data_cfg.load()
-    out: dict[str, Any] = {"budget": budget, "data": data, "machine": describe_machine(),
-                           "models": {}}
+    out: dict[str, Any] = {
+        "budget": budget,
+        "data": data,
+        "machine": describe_machine(),
+        "models": {},
+    }
     total = 0.0
     for name in names:
         exp = load_experiment(name)
         config, prov = bench_config(name, budget, data_cfg, exp)
         steps = int(config.train.steps)
-        probe, _, _ = replace_fields(config, {
-            "train.steps": max(probe_steps, 2) if steps > 0 else 0, "train.log_every": 1,
-            "train.eval_every": 10**9, "train.eval_batches": 1,
-            "train.checkpoint_every": 10**9})
+        probe, _, _ = replace_fields(
+            config,
+            {
+                "train.steps": max(probe_steps, 2) if steps > 0 else 0,
+                "train.log_every": 1,
+                "train.eval_every": 10**9,
+                "train.eval_batches": 1,
+                "train.checkpoint_every": 10**9,
+            },
+        )
         _log(progress, f"{name}: timing {probe.train.steps} steps of the {prov['preset']} config")
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            training.train(exp, probe, run_dir=Path(tmp) / "probe", preset=prov["preset"],
-                           dataset=dataset, progress=False)
+            training.train(
+                exp,
+                probe,
+                run_dir=Path(tmp) / "probe",
+                preset=prov["preset"],
+                dataset=dataset,
+                progress=False,
+            )
             wall = time.perf_counter() - t0
             rows = read_metrics(Path(tmp) / "probe")
         rates = [r["steps_per_s"] for r in rows if isinstance(r.get("steps_per_s"), int | float)]
         if steps == 0:
-            entry = {"steps": 0, "seconds_per_step": None, "projected_hours": wall / 3600,
-                     "note": "closed-form fit (timed in full)"}
+            entry = {
+                "steps": 0,
+                "seconds_per_step": None,
+                "projected_hours": wall / 3600,
+                "note": "closed-form fit (timed in full)",
+            }
         else:
             steady = rates[1:] or rates
             sec = 1.0 / float(np.median(steady))
-            entry = {"steps": steps, "seconds_per_step": sec,
-                     "batch_size": int(config.train.batch_size),
-                     "projected_hours": sec * steps / 3600, "probe_wall_s": wall}
+            entry = {
+                "steps": steps,
+                "seconds_per_step": sec,
+                "batch_size": int(config.train.batch_size),
+                "projected_hours": sec * steps / 3600,
+                "probe_wall_s": wall,
+            }
         total += entry["projected_hours"]
         out["models"][name] = entry
         _log(progress, f"{name}: {entry}")
@@ -1156,26 +1353,40 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     """The ``motionflows bench`` arguments (added to ``parser`` if given)."""
     p = parser or argparse.ArgumentParser(
         prog="motionflows bench",
-        description="Train (or reuse) every model on one split and write a comparison report.")
-    p.add_argument("--data", default="synthetic",
-                   help="synthetic (default) | bandai | bvh:DIR")
-    p.add_argument("--models", default=",".join(ALL_MODELS),
-                   help=f"comma-separated subset of {','.join(ALL_MODELS)}")
-    p.add_argument("--budget", default="quick", choices=list(BUDGETS),
-                   help="smoke: CI-sized; quick: the quick presets; full: the paper presets")
+        description="Train (or reuse) every model on one split and write a comparison report.",
+    )
+    p.add_argument("--data", default="synthetic", help="synthetic (default) | bandai | bvh:DIR")
+    p.add_argument(
+        "--models",
+        default=",".join(ALL_MODELS),
+        help=f"comma-separated subset of {','.join(ALL_MODELS)}",
+    )
+    p.add_argument(
+        "--budget",
+        default="quick",
+        choices=list(BUDGETS),
+        help="smoke: CI-sized; quick: the quick presets; full: the paper presets",
+    )
     p.add_argument("--out", default="runs/bench", help="report folder")
     p.add_argument("--runs-dir", default="runs", help="where runs are found and trained")
     p.add_argument("--temperature", type=float, default=1.0, help="sampling temperature")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--performer-split", dest="performer_split", action="store_true",
-                   default=None, help="also train and score a split by performer "
-                   "(default: on for bandai)")
+    p.add_argument(
+        "--performer-split",
+        dest="performer_split",
+        action="store_true",
+        default=None,
+        help="also train and score a split by performer (default: on for bandai)",
+    )
     p.add_argument("--no-performer-split", dest="performer_split", action="store_false")
     p.add_argument("--retrain", action="store_true", help="train even if a finished run exists")
     p.add_argument("--no-gifs", dest="gifs", action="store_false", help="skip the GIFs")
-    p.add_argument("--estimate", action="store_true",
-                   help="only time a few training steps per model and print the projected "
-                   "training time of the budget on this machine (writes OUT/estimate.json)")
+    p.add_argument(
+        "--estimate",
+        action="store_true",
+        help="only time a few training steps per model and print the projected "
+        "training time of the budget on this machine (writes OUT/estimate.json)",
+    )
     return p
 
 
@@ -1198,11 +1409,16 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
                 sps = e["seconds_per_step"]
                 per = f"{sps:.3f} s/step x {e['steps']} steps" if sps else e.get("note", "")
                 print(f"{name:>10}: {per} = {e['projected_hours']:.2f} h")
-            print(f"{'total':>10}: {est['total_hours']:.2f} h of training ({budget} budget, "
-                  f"{est['machine']['cpu']}, {est['machine']['cores']} cores)")
+            print(
+                f"{'total':>10}: {est['total_hours']:.2f} h of training ({budget} budget, "
+                f"{est['machine']['cpu']}, {est['machine']['cores']} cores)"
+            )
             return 0
         run_benchmark(
-            data=data, models=names, budget=budget, out=out,
+            data=data,
+            models=names,
+            budget=budget,
+            out=out,
             runs_dir=ns.get("runs_dir") or "runs",
             temperature=ns.get("temperature", 1.0) if ns.get("temperature") is not None else 1.0,
             seed=ns.get("seed") or 0,

@@ -54,8 +54,7 @@ def _gap(stats_test: dict | None, stats_train: dict | None, unit: str) -> str:
 
 def _ordered(lik: dict) -> list[tuple[str, dict]]:
     """Scopes in table order: ``window`` first, exact scores, then bounds."""
-    return sorted(lik.items(), key=lambda kv: (kv[0] != "window", bool(kv[1].get("bound")),
-                                               kv[0]))
+    return sorted(lik.items(), key=lambda kv: (kv[0] != "window", bool(kv[1].get("bound")), kv[0]))
 
 
 def likelihood_rows(models: dict, order: list[str]) -> list[list[str]]:
@@ -64,8 +63,9 @@ def likelihood_rows(models: dict, order: list[str]) -> list[list[str]]:
     for name in order:
         entry = models.get(name, {})
         if "error" in entry and not entry.get("likelihood"):
-            rows.append([f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80]]
-                        + [""] * 7)
+            rows.append(
+                [f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80]] + [""] * 7
+            )
             continue
         for scope, lik in _ordered(entry.get("likelihood", {})):
             label = f"{scope} (bound)" if lik.get("bound") else scope
@@ -170,8 +170,9 @@ def performer_table(split: dict, order: list[str]) -> str:
         if entry is None:
             continue
         if "error" in entry and not entry.get("likelihood"):
-            rows.append([f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80], "", "",
-                         "", ""])
+            rows.append(
+                [f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80], "", "", "", ""]
+            )
             continue
         for scope, lik in _ordered(entry.get("likelihood", {})):
             label = f"{scope} (bound)" if lik.get("bound") else scope
@@ -197,24 +198,30 @@ def write_markdown(results: dict, path: str | Path) -> str:
     out = []
     out.append(f"# motionflows benchmark: {data['spec']} data, {results['budget']} budget\n")
     out.append(f"Command: `{results['command']}`  ")
-    out.append(f"Created {results['created']} in {_fmt(results.get('wall_seconds'), 0)} s "
-               f"of wall time; budget `{results['budget']}` = {results['budget_note']}.  ")
-    out.append(f"Machine: {m['cpu']} ({m['cores']} cores visible), {m['memory']}, "
-               f"{m['platform']}; JAX {m['jax']} ({m['backend']}: {m['devices']}), "
-               f"Flax {m['flax']}, Python {m['python']}; {m.get('load', 'load unknown')} at "
-               "the start (timings on a shared machine are slower than on an idle one).\n")
+    out.append(
+        f"Created {results['created']} in {_fmt(results.get('wall_seconds'), 0)} s "
+        f"of wall time; budget `{results['budget']}` = {results['budget_note']}.  "
+    )
+    out.append(
+        f"Machine: {m['cpu']} ({m['cores']} cores visible), {m['memory']}, "
+        f"{m['platform']}; JAX {m['jax']} ({m['backend']}: {m['devices']}), "
+        f"Flax {m['flax']}, Python {m['python']}; {m.get('load', 'load unknown')} at "
+        "the start (timings on a shared machine are slower than on an idle one).\n"
+    )
     info = data.get("info", {})
     out.append("## Data\n")
-    out.append(f"Source `{data['config']['source']}`"
-               + (f" at `{data['config']['path']}`" if data["config"].get("path") else "")
-               + f", {data['config']['fps']:g} fps, windows of {data['config']['window']} "
-               f"frames ({data['config']['window'] / data['config']['fps']:g} s), hop "
-               f"{data['config']['hop']}, split by {data['config']['split_by']}. "
-               f"Takes train / val / test: {_split3(info.get('takes'))}; windows "
-               f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
-               f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
-               "trained on this one data configuration and scored on the same test windows "
-               "and controls; windows padded past the end of a short take are not scored.\n")
+    out.append(
+        f"Source `{data['config']['source']}`"
+        + (f" at `{data['config']['path']}`" if data["config"].get("path") else "")
+        + f", {data['config']['fps']:g} fps, windows of {data['config']['window']} "
+        f"frames ({data['config']['window'] / data['config']['fps']:g} s), hop "
+        f"{data['config']['hop']}, split by {data['config']['split_by']}. "
+        f"Takes train / val / test: {_split3(info.get('takes'))}; windows "
+        f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
+        f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
+        "trained on this one data configuration and scored on the same test windows "
+        "and controls; windows padded past the end of a short take are not scored.\n"
+    )
     out.append("## Likelihood\n")
     out.append(
         "Negative log-likelihood per frame (lower is better), mean over windows with a "
@@ -226,7 +233,8 @@ def write_markdown(results: dict, path: str | Path) -> str:
         "history before frame 1). MoGlow `official` = frames tau+1..T given the true first tau "
         "frames. `(bound)` rows are the VAE-LSTM's ELBO / IWAE-K: upper bounds on the NLL, not "
         "the NLL. The train column scores "
-        f"{results['train_windows_note']}.\n")
+        f"{results['train_windows_note']}.\n"
+    )
     out.append(_table(LIKELIHOOD_HEADER, likelihood_rows(results["models"], order)) + "\n")
     split = results.get("performer_split")
     if split:
@@ -234,8 +242,10 @@ def write_markdown(results: dict, path: str | Path) -> str:
         if split.get("skipped"):
             out.append(f"Not run: {split['skipped']}\n")
         else:
-            out.append(f"Train on performers {split.get('train', '?')}, test on "
-                       f"{split.get('test', '?')} (each model retrained on this split).\n")
+            out.append(
+                f"Train on performers {split.get('train', '?')}, test on "
+                f"{split.get('test', '?')} (each model retrained on this split).\n"
+            )
             out.append(performer_table(split, order) + "\n")
     out.append("## Motion quality of samples\n")
     out.append(
@@ -243,14 +253,17 @@ def write_markdown(results: dict, path: str | Path) -> str:
         f"temperature {results['temperature']:g} (every model), converted to metres; diversity "
         f"from {results.get('diversity_samples', 'several')} samples under one control; the "
         "first row scores the ground-truth test motion the same way. "
-        + results.get("motion_note", "") + "\n")
+        + results.get("motion_note", "")
+        + "\n"
+    )
     out.append(motion_table(results, order) + "\n")
     out.append("## Speed\n")
     out.append(
         "Training frames/s: median of the run's logged frames/s (frames of pose data per "
         "second of training, data loading included). Sampling frames/s: generated frames per "
         f"second of wall time for {results['window']} frames per sequence at batch 1 and 64 "
-        "(jitted sampler, compile excluded and listed separately).\n")
+        "(jitted sampler, compile excluded and listed separately).\n"
+    )
     out.append(speed_table(results, order) + "\n")
     plots = results.get("plots", {})
     if plots:
@@ -349,7 +362,7 @@ def plot_metric_bars(results: dict, path: str | Path) -> bool:
         ax.set_xticklabels(names, rotation=45, ha="right", fontsize=7)
         ax.set_title(f"{meta[key]['label']}\n({meta[key]['unit']})", fontsize=8)
         ax.tick_params(axis="y", labelsize=7)
-    for ax in list(axes.flat)[len(keys):]:
+    for ax in list(axes.flat)[len(keys) :]:
         ax.axis("off")
     fig.suptitle(f"Motion quality (temperature {results.get('temperature', '?')})", fontsize=9)
     fig.tight_layout()
