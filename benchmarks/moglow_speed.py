@@ -28,14 +28,31 @@ from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.moglow import MoGlow
 
-PAPER = {"K": 16, "hidden": 512, "layers": 2, "tau": 10, "batch": 100, "window": 80,
-         "sample_frames": 60}
-QUICK = {"K": 4, "hidden": 64, "layers": 1, "tau": 10, "batch": 16, "window": 40,
-         "sample_frames": 20}
-REFERENCE = {"train_step_s": 12.6, "sample_ms_per_frame_b1": 49.5,
-             "sample_ms_per_frame_b64": 78.5}
-TARGETS = {"train_step_s_float32": 12.6, "train_step_s_bfloat16": 4.0,
-           "sample_ms_per_frame_b1": 10.0, "sample_ms_per_frame_b64": 20.0}
+PAPER = {
+    "K": 16,
+    "hidden": 512,
+    "layers": 2,
+    "tau": 10,
+    "batch": 100,
+    "window": 80,
+    "sample_frames": 60,
+}
+QUICK = {
+    "K": 4,
+    "hidden": 64,
+    "layers": 1,
+    "tau": 10,
+    "batch": 16,
+    "window": 40,
+    "sample_frames": 20,
+}
+REFERENCE = {"train_step_s": 12.6, "sample_ms_per_frame_b1": 49.5, "sample_ms_per_frame_b64": 78.5}
+TARGETS = {
+    "train_step_s_float32": 12.6,
+    "train_step_s_bfloat16": 4.0,
+    "sample_ms_per_frame_b1": 10.0,
+    "sample_ms_per_frame_b64": 20.0,
+}
 
 
 def machine() -> dict:
@@ -79,9 +96,17 @@ def _time(fn, repeats: int) -> list[float]:
 def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
     cd = None if dtype == "float32" else dtype
     k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
-    model = MoGlow(POSE_DIM, CONTROL_DIM, tau=cfg["tau"], num_steps=cfg["K"],
-                   hidden=cfg["hidden"], num_layers=cfg["layers"], dropout=0.95,
-                   compute_dtype=cd, rngs=k_model)
+    model = MoGlow(
+        POSE_DIM,
+        CONTROL_DIM,
+        tau=cfg["tau"],
+        num_steps=cfg["K"],
+        hidden=cfg["hidden"],
+        num_layers=cfg["layers"],
+        dropout=0.95,
+        compute_dtype=cd,
+        rngs=k_model,
+    )
     b, t = cfg["batch"], cfg["window"]
     kp, kc = jax.random.split(k_data)
     pose = jax.random.normal(kp, (b, t, POSE_DIM))
@@ -166,8 +191,12 @@ def main(argv=None) -> int:
     repeats = args.repeats or (3 if args.quick else 2)
     out = {
         "benchmark": "moglow_speed",
-        "config": {**cfg, "pose_dim": POSE_DIM, "control_dim": CONTROL_DIM,
-                   "targets_per_window": cfg["window"] - cfg["tau"]},
+        "config": {
+            **cfg,
+            "pose_dim": POSE_DIM,
+            "control_dim": CONTROL_DIM,
+            "targets_per_window": cfg["window"] - cfg["tau"],
+        },
         "quick": args.quick,
         "machine": machine(),
         "reference_official_pytorch": REFERENCE,

@@ -186,8 +186,9 @@ def _sample(model, control, key, temperature, seed_pose):
     return model.sample(key, control, seed_history=seed_pose, temperature=temperature)
 
 
-def sample(model: MoGlow, control, key: jax.Array, *, temperature: float = 1.0,
-           seed_pose=None) -> jax.Array:
+def sample(
+    model: MoGlow, control, key: jax.Array, *, temperature: float = 1.0, seed_pose=None
+) -> jax.Array:
     """Poses (B, T, 63), standardised, following control (B, T, 3) (jitted scan over frames).
 
     ``seed_pose``: None (zero history, the official start) or (B, S, 63) standardised poses

@@ -77,3 +77,20 @@ def test_scope_scored_frames():
     assert Scope("tail", skip=5).scored_frames(80) == 75
     with pytest.raises(ValueError, match="config"):
         Scope("official", skip="tau").scored_frames(80)
+
+
+def test_overrides_parse_tuple_fields_with_element_types():
+    @dataclasses.dataclass(frozen=True)
+    class C:
+        counts: tuple[int, ...] = (1,)
+        pair: tuple[float, float] = (0.0, 1.0)
+        width: int | None = None
+
+    c = apply_overrides(C(), ["counts=[1,10,100]", "pair=0.5,2", "width=3"])
+    assert c == C(counts=(1, 10, 100), pair=(0.5, 2.0), width=3)
+    assert isinstance(c.counts[0], int) and isinstance(c.pair[0], float)
+    assert apply_overrides(C(), ["counts=7,8"]).counts == (7, 8)
+    with pytest.raises(ValueError, match="cannot read"):
+        apply_overrides(C(), ["counts=[1,x]"])
+    with pytest.raises(ValueError, match="cannot read"):
+        apply_overrides(C(), ["pair=1"])  # wrong arity

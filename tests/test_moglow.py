@@ -24,8 +24,17 @@ def _perturbed(model: MoGlow, key, scale=0.15) -> MoGlow:
 
 
 def _model(conditioner="lstm", seed=0, layers=1, **kw) -> MoGlow:
-    m = MoGlow(D, C, tau=TAU, num_steps=K, hidden=H, num_layers=layers, conditioner=conditioner,
-               rngs=jax.random.key(seed), **kw)
+    m = MoGlow(
+        D,
+        C,
+        tau=TAU,
+        num_steps=K,
+        hidden=H,
+        num_layers=layers,
+        conditioner=conditioner,
+        rngs=jax.random.key(seed),
+        **kw,
+    )
     return _perturbed(m, jax.random.key(seed + 100))
 
 
@@ -67,8 +76,9 @@ def test_official_scope_round_trip_with_seed_history():
     np.testing.assert_allclose(x_back, targets, atol=1e-5)
     np.testing.assert_allclose(ld_fwd, -ld, rtol=1e-5, atol=1e-4)
     # the frame sampler seeded with the first tau frames and controls regenerates the rest
-    x_gen = model.generate(z, control[:, TAU:], seed_history=pose[:, :TAU],
-                           seed_control=control[:, :TAU])
+    x_gen = model.generate(
+        z, control[:, TAU:], seed_history=pose[:, :TAU], seed_control=control[:, :TAU]
+    )
     np.testing.assert_allclose(x_gen, targets, atol=1e-5)
 
 
@@ -131,8 +141,9 @@ def test_log_prob_dropout_uses_key():
     c = model.log_prob(pose, control, key=jax.random.key(2))
     np.testing.assert_array_equal(a, b)
     assert not np.allclose(a, clean) and not np.allclose(a, c)
-    np.testing.assert_allclose(model.log_prob(pose, control, key=jax.random.key(1), dropout=0.0),
-                               clean, rtol=1e-6)
+    np.testing.assert_allclose(
+        model.log_prob(pose, control, key=jax.random.key(1), dropout=0.0), clean, rtol=1e-6
+    )
 
 
 def test_stream_step_equals_sample():
@@ -190,8 +201,16 @@ def test_bfloat16_close_to_float32_and_student_t():
     pose, control = _data()
     a = _model()
     graph, state = nnx.split(a)
-    b = MoGlow(D, C, tau=TAU, num_steps=K, hidden=H, num_layers=1, compute_dtype="bfloat16",
-               rngs=jax.random.key(0))
+    b = MoGlow(
+        D,
+        C,
+        tau=TAU,
+        num_steps=K,
+        hidden=H,
+        num_layers=1,
+        compute_dtype="bfloat16",
+        rngs=jax.random.key(0),
+    )
     nnx.update(b, state)
     la, lb = a.log_prob(pose, control), b.log_prob(pose, control)
     assert lb.dtype == jnp.float32

@@ -32,13 +32,16 @@ def test_presets_and_config_round_trip():
 
 
 def test_protocol_functions():
-    config = dataclasses.replace(exp.PRESETS["quick"], K=2, hidden=8, tau=3,
-                                 data=DataConfig(window=8))
+    config = dataclasses.replace(
+        exp.PRESETS["quick"], K=2, hidden=8, tau=3, data=DataConfig(window=8)
+    )
     key = jax.random.key(0)
     model = exp.build(config, key=key)
     kp, kc = jax.random.split(jax.random.key(1))
-    batch = {"pose": jax.random.normal(kp, (4, 8, POSE_DIM)),
-             "control": jax.random.normal(kc, (4, 8, CONTROL_DIM))}
+    batch = {
+        "pose": jax.random.normal(kp, (4, 8, POSE_DIM)),
+        "control": jax.random.normal(kc, (4, 8, CONTROL_DIM)),
+    }
     model = exp.initialize(model, batch, key=key)
     value, metrics = exp.loss(model, batch, jax.random.key(2))
     assert np.isfinite(float(value))
@@ -50,11 +53,14 @@ def test_protocol_functions():
     # the loss is the dropout-scored official NLL per target frame
     np.testing.assert_allclose(
         -jnp.mean(model.log_prob(batch["pose"], batch["control"], key=jax.random.key(2))) / 5,
-        value, rtol=1e-5)
+        value,
+        rtol=1e-5,
+    )
     # (fresh coupling heads are zero, so dropout cannot change the score yet)
     np.testing.assert_allclose(ll["official"], ll["official_dropout"], rtol=1e-5)
-    x = exp.sample(model, batch["control"], jax.random.key(4), temperature=0.5,
-                   seed_pose=batch["pose"][:, :3])
+    x = exp.sample(
+        model, batch["control"], jax.random.key(4), temperature=0.5, seed_pose=batch["pose"][:, :3]
+    )
     assert x.shape == (4, 8, POSE_DIM) and np.all(np.isfinite(x))
     x0 = exp.sample(model, batch["control"], jax.random.key(4), temperature=0.0)
     x1 = exp.sample(model, batch["control"], jax.random.key(5), temperature=0.0)

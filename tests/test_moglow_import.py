@@ -54,8 +54,12 @@ def _np_lstm(seq, sd, p):
         h, c, ys = np.zeros(H), np.zeros(H), []
         for x in out:
             g = w_ih @ x + w_hh @ h + b
-            i, f, gg, o = _sigmoid(g[:H]), _sigmoid(g[H:2 * H]), np.tanh(g[2 * H:3 * H]), \
-                _sigmoid(g[3 * H:])
+            i, f, gg, o = (
+                _sigmoid(g[:H]),
+                _sigmoid(g[H : 2 * H]),
+                np.tanh(g[2 * H : 3 * H]),
+                _sigmoid(g[3 * H :]),
+            )
             c = f * c + i * gg
             h = o * np.tanh(c)
             ys.append(h)
@@ -69,8 +73,12 @@ def _official_log_prob(sd, pose, control):
     t_all = pose.shape[0]
     targets = pose[TAU:].T  # (C, T')  channel-first, as the official code holds data
     cond = np.stack(
-        [np.concatenate([pose[t - TAU:t].reshape(-1), control[t - TAU:t + 1].reshape(-1)])
-         for t in range(TAU, t_all)], axis=1)  # (cond, T')
+        [
+            np.concatenate([pose[t - TAU : t].reshape(-1), control[t - TAU : t + 1].reshape(-1)])
+            for t in range(TAU, t_all)
+        ],
+        axis=1,
+    )  # (cond, T')
     n_t = targets.shape[1]
     z, logdet = targets.copy(), 0.0
     lower = np.tril(np.ones((D, D)), -1)
@@ -78,12 +86,17 @@ def _official_log_prob(sd, pose, control):
         p = f"flow.layers.{k}."
         z = (z + sd[p + "actnorm.bias"][0]) * np.exp(sd[p + "actnorm.logs"][0])
         logdet += n_t * sd[p + "actnorm.logs"].sum()
-        w = sd[p + "invconv.p"] @ (sd[p + "invconv.l"] * lower + np.eye(D)) @ (
-            sd[p + "invconv.u"] * lower.T
-            + np.diag(sd[p + "invconv.sign_s"] * np.exp(sd[p + "invconv.log_s"])))
+        w = (
+            sd[p + "invconv.p"]
+            @ (sd[p + "invconv.l"] * lower + np.eye(D))
+            @ (
+                sd[p + "invconv.u"] * lower.T
+                + np.diag(sd[p + "invconv.sign_s"] * np.exp(sd[p + "invconv.log_s"]))
+            )
+        )
         z = w @ z
         logdet += n_t * sd[p + "invconv.log_s"].sum()
-        za, zb = z[: D // 2], z[D // 2:]
+        za, zb = z[: D // 2], z[D // 2 :]
         y = _np_lstm(np.concatenate([za, cond], 0).T, sd, p + "f.lstm.")  # (T', H)
         h = (y @ sd[p + "f.linear.weight"].T + sd[p + "f.linear.bias"]).T  # (2nb, T')
         shift, scale = h[0::2], _sigmoid(h[1::2] + 2.0) + 1e-6
@@ -103,6 +116,7 @@ def test_import_reproduces_hand_computed_log_prob():
     got = np.asarray(model.log_prob(pose, control))
     want = np.array([_official_log_prob(sd, pose[b], control[b]) for b in range(2)])
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-4)
+
     # torch-like objects (with .detach().cpu().numpy()) are accepted too
     class FakeTensor:
         def __init__(self, a):
@@ -117,8 +131,9 @@ def test_import_reproduces_hand_computed_log_prob():
         def numpy(self):
             return self.a
 
-    model2 = import_stylegestures({k: FakeTensor(v) for k, v in sd.items()},
-                                  pose_dim=D, control_dim=C, tau=TAU)
+    model2 = import_stylegestures(
+        {k: FakeTensor(v) for k, v in sd.items()}, pose_dim=D, control_dim=C, tau=TAU
+    )
     np.testing.assert_allclose(np.asarray(model2.log_prob(pose, control)), got, rtol=1e-6)
 
 

@@ -44,8 +44,9 @@ def linear_ar_nll(train, test):
 
     def feats(pose, ctrl):
         n = pose.shape[1] - TAU
-        parts = [pose[:, j : j + n] for j in range(TAU)] + [ctrl[:, j : j + n]
-                                                            for j in range(TAU + 1)]
+        parts = [pose[:, j : j + n] for j in range(TAU)] + [
+            ctrl[:, j : j + n] for j in range(TAU + 1)
+        ]
         h = np.concatenate(parts + [np.ones_like(ctrl[:, :n])], -1)
         return h.reshape(-1, h.shape[-1]), pose[:, TAU:].reshape(-1, D)
 
@@ -75,8 +76,9 @@ def test_tiny_moglow_beats_linear_gaussian_and_follows_control():
     except ImportError:  # pragma: no cover
         pass
 
-    model = MoGlow(D, C, tau=TAU, num_steps=3, hidden=32, num_layers=1, dropout=0.0,
-                   rngs=jax.random.key(0))
+    model = MoGlow(
+        D, C, tau=TAU, num_steps=3, hidden=32, num_layers=1, dropout=0.0, rngs=jax.random.key(0)
+    )
     model = initialize_from_data(model, train[0][:256], context=train[1][:256])
     graph, params, rest = nnx.split(model, nnx.Param, ...)
     opt = optax.adam(optax.cosine_decay_schedule(1e-2, 700, 0.05))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import types
 import typing
 from typing import Any
 
@@ -145,25 +146,50 @@ def _field_paths(cls: type, prefix: str = "") -> dict[str, tuple[str, type]]:
 
 
 def _parse(text: str, kind: Any, key: str) -> Any:
-    """Parse an override value with the field's type; JSON for anything non-trivial."""
+    """Parse an override value with the field's type; JSON for containers.
+
+    ``int``/``float``/``str``/``bool`` fields take plain text; ``X | None`` also takes
+    ``none``/``null``; ``tuple[...]`` fields take a JSON list (``[1,10]``) or a bare
+    comma-separated list (``1,10``), each element converted to the declared element type.
+    """
     args = typing.get_args(kind)
-    optional = type(None) in args
-    if optional and text.lower() in ("none", "null"):
-        return None
-    base = next((a for a in args if a is not type(None)), kind) if args else kind
+    origin = typing.get_origin(kind)
+    if origin in (typing.Union, types.UnionType):
+        if type(None) in args and text.lower() in ("none", "null"):
+            return None
+        non_none = [a for a in args if a is not type(None)]
+        if len(non_none) == 1:
+            return _parse(text, non_none[0], key)
+        kind, origin, args = Any, None, ()
     try:
-        if base is bool:
+        if kind is bool:
             if text.lower() in ("1", "true", "yes", "on"):
                 return True
             if text.lower() in ("0", "false", "no", "off"):
                 return False
             raise ValueError(text)
-        if base is int:
-            return int(text)
-        if base is float:
-            return float(text)
-        if base is str:
-            return text
+        if kind in (int, float, str):
+            return kind(text)
+        if origin in (tuple, list):
+            stripped = text.strip()
+            if stripped.startswith("["):
+                items = json.loads(stripped)
+            else:
+                items = [part.strip() for part in stripped.split(",") if part.strip()]
+            if not isinstance(items, list):
+                raise ValueError(text)
+            if len(args) == 2 and args[1] is Ellipsis:
+                element_types = [args[0]] * len(items)
+            elif args:
+                if len(args) != len(items):
+                    raise ValueError(f"expected {len(args)} values, got {len(items)}")
+                element_types = list(args)
+            else:
+                element_types = [Any] * len(items)
+            return tuple(
+                item if t is Any else _parse(str(item), t, key)
+                for item, t in zip(items, element_types, strict=True)
+            )
         value = json.loads(text)
         return tuple(value) if isinstance(value, list) else value
     except ValueError as err:

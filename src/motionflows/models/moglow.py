@@ -160,8 +160,11 @@ class FeedForwardConditioner(nnx.Module):
         for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
             bound = 1.0 / math.sqrt(fan_in)
             ws.append(
-                nnx.Param(jax.random.uniform(rngs.params(), (fan_in, fan_out), minval=-bound,
-                                             maxval=bound))
+                nnx.Param(
+                    jax.random.uniform(
+                        rngs.params(), (fan_in, fan_out), minval=-bound, maxval=bound
+                    )
+                )
             )
             bs.append(nnx.Param(jnp.zeros((fan_out,), jnp.float32)))
         self.ws = nnx.List(ws)
@@ -230,9 +233,7 @@ def build_conditions(
         mask = history_dropout_mask(key, hist.shape[:-2], tau, dropout)
         hist = hist * mask[..., None]
     batch = hist.shape[:-2]
-    cond = jnp.concatenate(
-        [hist.reshape(*batch, -1), ctrl.reshape(*batch, -1)], axis=-1
-    )
+    cond = jnp.concatenate([hist.reshape(*batch, -1), ctrl.reshape(*batch, -1)], axis=-1)
     return targets, cond
 
 
@@ -356,17 +357,13 @@ class MoGlow(nnx.Module):
     def _check(self, pose: Array | None, control: Array, name: str) -> None:
         c = getattr(control, "shape", None)
         if c is None or len(c) != 3 or c[-1] != self.control_dim:
-            raise ValueError(
-                f"MoGlow.{name}: control must be (B, T, {self.control_dim}), got {c}"
-            )
+            raise ValueError(f"MoGlow.{name}: control must be (B, T, {self.control_dim}), got {c}")
         if pose is not None:
             p = getattr(pose, "shape", None)
             if p is None or len(p) != 3 or p[-1] != self.pose_dim:
                 raise ValueError(f"MoGlow.{name}: pose must be (B, T, {self.pose_dim}), got {p}")
             if p[:2] != c[:2]:
-                raise ValueError(
-                    f"MoGlow.{name}: pose {p} and control {c} must share (B, T)"
-                )
+                raise ValueError(f"MoGlow.{name}: pose {p} and control {c} must share (B, T)")
 
     # -- base density
 
@@ -375,9 +372,7 @@ class MoGlow(nnx.Module):
         if self.base == "normal":
             return -0.5 * jnp.sum(z * z + LOG_2PI, axis=-1)
         df = self.df
-        const = (
-            math.lgamma(0.5 * (df + 1.0)) - math.lgamma(0.5 * df) - 0.5 * math.log(math.pi * df)
-        )
+        const = math.lgamma(0.5 * (df + 1.0)) - math.lgamma(0.5 * df) - 0.5 * math.log(math.pi * df)
         return jnp.sum(const - 0.5 * (df + 1.0) * jnp.log1p(z * z / df), axis=-1)
 
     def _noise(self, key: Array, shape: tuple[int, ...]) -> Array:
@@ -606,9 +601,7 @@ class MoGlow(nnx.Module):
             x_t, st = self._advance(st, c_t, z_t)
             return st, x_t
 
-        _, xs = jax.lax.scan(
-            body, state, (jnp.swapaxes(control, 0, 1), jnp.swapaxes(z, 0, 1))
-        )
+        _, xs = jax.lax.scan(body, state, (jnp.swapaxes(control, 0, 1), jnp.swapaxes(z, 0, 1)))
         return jnp.swapaxes(xs, 0, 1)
 
     def sample(
@@ -677,9 +670,9 @@ def import_stylegestures(
         raise ValueError("import_stylegestures expects a dict of parameter name -> array")
     layer_ids = sorted(
         {
-            int(name[len(prefix):].split(".")[0])
+            int(name[len(prefix) :].split(".")[0])
             for name in state_dict
-            if name.startswith(prefix) and name[len(prefix):].split(".")[0].isdigit()
+            if name.startswith(prefix) and name[len(prefix) :].split(".")[0].isdigit()
         }
     )
     if not layer_ids or layer_ids != list(range(len(layer_ids))):
