@@ -35,6 +35,11 @@ class TimeConv(nnx.Module):
     y[..., t, o] = b[o] + sum_{k, i} W[k, i, o] x[..., t + k - (K - 1) // 2, i], with x = 0
     outside [0, T). ``compute_dtype`` casts x and W for the product and accumulates in
     float32; the result is float32.
+
+    Implemented as one matmul of the K time-shifted copies of x, concatenated along channels
+    (T, K * C_in), with W reshaped to (K * C_in, C_out): the same sum, but XLA:CPU runs it
+    ~15x faster than ``lax.conv_general_dilated`` when differentiated inside a ``lax.scan``
+    (the flow steps of a level are a ``Scan``).
     """
 
     def __init__(
@@ -71,18 +76,16 @@ class TimeConv(nnx.Module):
         lead = x.shape[:-2]
         t, c = x.shape[-2:]
         h = x.reshape((-1, t, c))
-        w = self.kernel[...]
+        k = self.kernel_size
+        if k > 1:  # im2col: frames t-p .. t+p side by side, zeros outside [0, T)
+            p = (k - 1) // 2
+            padded = jnp.pad(h, ((0, 0), (p, p), (0, 0)))
+            h = jnp.concatenate([padded[:, j : j + t] for j in range(k)], axis=-1)
+        w = self.kernel[...].reshape(k * c, self.out_features)
         if self.compute_dtype is not None:
             h = h.astype(self.compute_dtype)
             w = w.astype(self.compute_dtype)
-        y = jax.lax.conv_general_dilated(
-            h,
-            w,
-            window_strides=(1,),
-            padding="SAME",
-            dimension_numbers=("NWC", "WIO", "NWC"),
-            preferred_element_type=jnp.float32,
-        )
+        y = jnp.matmul(h, w, preferred_element_type=jnp.float32)
         y = y.astype(jnp.float32) + self.bias[...]
         return y.reshape(lead + (t, self.out_features))
 
