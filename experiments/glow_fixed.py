@@ -92,20 +92,20 @@ PRESETS: dict[str, Config] = {
     "quick": Config(
         data=DataConfig(window=32, hop=8, synthetic_clips=60),
         train=TrainConfig(
-            steps=600,
+            steps=2000,
             batch_size=32,
             lr=1e-3,
             warmup_steps=50,
             clip_value=5.0,
             clip_norm=100.0,
-            eval_every=200,
+            eval_every=500,
             eval_batches=4,
             log_every=20,
-            checkpoint_every=600,
+            checkpoint_every=1000,
         ),
         levels=2,
-        steps=4,
-        hidden=64,
+        steps=8,
+        hidden=128,
     ),
 }
 PRESETS["paper_unconditional"] = dataclasses.replace(PRESETS["paper"], conditional=False)
