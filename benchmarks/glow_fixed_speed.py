@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import sys
@@ -33,6 +32,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
+from motionflows.bench import describe_machine
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.glow import Glow
 
@@ -41,34 +41,8 @@ QUICK = {"levels": 2, "steps": 4, "hidden": 64, "batch": 64, "window": 32}
 
 
 def machine() -> dict:
-    """CPU model and ISA flags, cores, load average, JAX backend and devices."""
-    cpu, isa = "unknown", []
-    try:
-        with open("/proc/cpuinfo") as f:
-            text = f.read()
-        for line in text.splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        flags = next((ln for ln in text.splitlines() if ln.startswith("flags")), "")
-        isa = [x for x in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f" {x}" in flags]
-    except OSError:
-        pass
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:
-        cores = os.cpu_count()
-    return {
-        "cpu": cpu,
-        "cores": cores,
-        "isa": isa,
-        "load_average_1_5_15": list(os.getloadavg()),
-        "platform": f"{platform.system()} {platform.release()}",
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "backend": jax.default_backend(),
-        "devices": [str(d) for d in jax.devices()],
-    }
+    """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
+    return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
 
 
 def _device_peak_bytes() -> int | None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import resource
 import statistics
 import sys
@@ -24,6 +23,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
+from motionflows.bench import describe_machine
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.moglow import MoGlow
@@ -56,32 +56,8 @@ TARGETS = {
 
 
 def machine() -> dict:
-    cpu = "unknown"
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-        with open("/proc/cpuinfo") as f:
-            flags = next((ln for ln in f if ln.startswith("flags")), "")
-        isa = [x for x in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if f" {x}" in flags]
-    except OSError:
-        isa = []
-    try:
-        load = os.getloadavg()
-    except OSError:
-        load = None
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "isa": isa,
-        "load_average_1_5_15": load,
-        "jax": jax.__version__,
-        "backend": jax.default_backend(),
-        "devices": [str(d) for d in jax.devices()],
-        "python": platform.python_version(),
-    }
+    """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
+    return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
 
 
 def _time(fn, repeats: int) -> list[float]:

@@ -239,11 +239,15 @@ def describe_machine() -> dict:
     import jax
 
     cpu = platform.processor() or platform.machine()
+    isa: list[str] = []  # the vector extensions that decide CPU matmul speed
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        for line in lines:
             if line.lower().startswith("model name"):
                 cpu = line.split(":", 1)[1].strip()
                 break
+        flags = set(next((ln for ln in lines if ln.startswith("flags")), "").split())
+        isa = [x for x in ("avx2", "avx512f", "avx512_bf16", "amx_bf16") if x in flags]
     except OSError:
         pass
     try:
@@ -266,6 +270,7 @@ def describe_machine() -> dict:
     return {
         "load": load,
         "cpu": cpu,
+        "isa": isa,
         "cores": cores,
         "memory": memory,
         "platform": f"{platform.system()} {platform.release()}",

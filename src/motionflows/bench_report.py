@@ -203,7 +203,8 @@ def write_markdown(results: dict, path: str | Path) -> str:
         f"of wall time; budget `{results['budget']}` = {results['budget_note']}.  "
     )
     out.append(
-        f"Machine: {m['cpu']} ({m['cores']} cores visible), {m['memory']}, "
+        f"Machine: {m['cpu']} ({m['cores']} cores visible"
+        f"{'; ' + ', '.join(m['isa']) if m.get('isa') else ''}), {m['memory']}, "
         f"{m['platform']}; JAX {m['jax']} ({m['backend']}: {m['devices']}), "
         f"Flax {m['flax']}, Python {m['python']}; {m.get('load', 'load unknown')} at "
         "the start (timings on a shared machine are slower than on an idle one).\n"
