@@ -37,7 +37,7 @@ class Config:
     data: DataConfig = DataConfig()
     train: TrainConfig = TrainConfig()
     levels: int = 4  # L: squeeze levels; data.window must be divisible by 2**L
-    steps: int = 32  # K: flow steps per level
+    K: int = 32  # flow steps per level (MoGlow's config calls it K too)
     hidden: int = 512  # coupling nets' hidden width
     conditional: bool = True  # condition on the control signal (False = unconditional)
     prior: str = "standard"  # "standard" (paper) or "learned" (glow-pytorch split prior)
@@ -45,10 +45,9 @@ class Config:
     coupling_eps: float = 1e-6  # floor of the affine coupling scale
 
     def __post_init__(self):
-        if self.levels < 1 or self.steps < 1 or self.hidden < 1:
+        if self.levels < 1 or self.K < 1 or self.hidden < 1:
             raise ValueError(
-                f"levels, steps and hidden must be >= 1, got {self.levels}, {self.steps}, "
-                f"{self.hidden}"
+                f"levels, K and hidden must be >= 1, got {self.levels}, {self.K}, {self.hidden}"
             )
         multiple = 2**self.levels
         if self.data.window % multiple:
@@ -104,7 +103,7 @@ PRESETS: dict[str, Config] = {
             checkpoint_every=1000,
         ),
         levels=2,
-        steps=8,
+        K=8,
         hidden=128,
     ),
 }
@@ -121,12 +120,13 @@ def build(config: Config, *, key: jax.Array) -> Glow:
     return Glow(
         POSE_DIM,
         levels=config.levels,
-        steps=config.steps,
+        steps=config.K,
         hidden=config.hidden,
         control_dim=CONTROL_DIM if config.conditional else 0,
         prior=config.prior,
         compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
         coupling_eps=config.coupling_eps,
+        length=config.data.window,
         rngs=nnx.Rngs(params=key),
     )
 

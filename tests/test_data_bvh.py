@@ -56,7 +56,8 @@ def test_parse_structure_and_channels():
 
 def test_forward_kinematics_hand_computed():
     bvh = parse_bvh(SIMPLE)
-    pos, rot = forward_kinematics(bvh)
+    pos, rot = forward_kinematics(bvh, return_rotations=True)
+    np.testing.assert_array_equal(forward_kinematics(bvh), pos)  # positions by default
     # frame 0: rest pose
     np.testing.assert_allclose(pos[0], [[0, 0, 0], [1, 0, 0], [0, -1, 0]], atol=1e-12)
     # frame 1: root at (1,2,3) rotated 90 deg about +Y: x -> -z
@@ -91,7 +92,7 @@ Frame Time: 0.1
 90 90 0
 """
         bvh = parse_bvh(text)
-        _, rot = forward_kinematics(bvh)
+        _, rot = forward_kinematics(bvh, return_rotations=True)
         return rot[0, 0] @ np.array([0.0, 1.0, 0.0])
 
     # Rz(90) Rx(90) Ry(0) (0,1,0): Rx -> (0,0,1), Rz leaves z -> (0,0,1)
@@ -109,7 +110,7 @@ def test_position_channels_replace_offset_on_child():
     lines[-2] = "0 0 0 0 0 0 5 0 0 0 0 0 0 0 0"
     lines[-1] = "0 0 0 0 0 0 1 0 0 0 0 0 0 0 0"
     bvh = parse_bvh("\n".join(lines) + "\n")
-    pos, _ = forward_kinematics(bvh)
+    pos = forward_kinematics(bvh)
     np.testing.assert_allclose(pos[:, 1], [[5, 0, 0], [1, 0, 0]])
 
 

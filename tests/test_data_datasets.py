@@ -54,6 +54,7 @@ def test_standardizer_log_jacobian_matches_autodiff(ds):
     jac = jax.jacfwd(lambda v: st.normalize_pose(v))(x)
     _, logdet = jnp.linalg.slogdet(jac)
     assert float(logdet) == pytest.approx(st.log_det_per_frame, rel=1e-5)
+    assert st.log_jacobian(3) == pytest.approx(3 * float(logdet), rel=1e-5)
     np.testing.assert_allclose(
         st.denormalize_pose(st.normalize_pose(ds.val.pose)), ds.val.pose, atol=1e-5
     )
@@ -151,6 +152,10 @@ def test_control_presets():
     assert preset("sidestep-left", 4.0)[:, 1].mean() > 0
     with pytest.raises(ValueError, match="walk-turn-left"):
         preset("moonwalk", 3.0)
+    # spelling-tolerant names: underscores, case, figure8
+    for alias in ("figure_eight", "figure8", "Figure-Eight"):
+        np.testing.assert_array_equal(load_control(alias, 6.0), preset("figure-eight", 6.0))
+    np.testing.assert_array_equal(preset("walk_then_run", 4.0), preset("walk-then-run", 4.0))
 
 
 def test_load_control_file(tmp_path):

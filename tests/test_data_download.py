@@ -87,3 +87,17 @@ def test_download_reports_bad_checksum_and_missing(server, tmp_path):
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+def test_cli_download_from_mirror_then_skips(server, tmp_path, monkeypatch, capsys):
+    from motionflows.cli import main
+
+    monkeypatch.setenv("MOTIONFLOWS_BANDAI_URL", server)  # the CLI's mirror setting
+    assert main(["data", "download", "bandai", "--dest", str(tmp_path)]) == 0
+    rows = bandai_manifest()
+    for row in rows:
+        data = (tmp_path / row["file"]).read_bytes()
+        assert git_blob_sha1(data) == row["git_blob_sha1"]
+    capsys.readouterr()
+    assert main(["data", "download", "bandai", "--dest", str(tmp_path), "--url", server]) == 0
+    assert f"0 downloaded, {len(rows)} already present" in capsys.readouterr().err

@@ -53,6 +53,12 @@ def test_normal_log_prob_standard_and_diagonal():
     loc, scale = jnp.array([0.5, -1.0]), jnp.array([2.0, 0.3])
     ref = jnp.sum(jax.scipy.stats.norm.logpdf(x, loc, scale), axis=(-2, -1))
     close(Normal((T, D), loc=loc, scale=scale).log_prob(x), ref, 1e-4)
+    # without event_shape: any (T, D) for the standard normal; loc/scale's shape otherwise
+    close(Normal().log_prob(x), Normal((T, D)).log_prob(x))
+    full_loc = jnp.broadcast_to(loc, (T, D))
+    close(Normal(loc=full_loc, scale=scale).log_prob(x), ref, 1e-4)
+    with pytest.raises(ValueError, match="df"):
+        StudentT((T, D))
 
 
 def test_student_t_log_prob():

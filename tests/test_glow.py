@@ -193,6 +193,8 @@ def test_unconditional_sampling(unconditional, key):
     # sampling = decoding temperature * eps with the same key
     eps = 0.5 * jax.random.normal(key, (2, 8 * POSE_DIM))
     np.testing.assert_allclose(s, decode(unconditional, eps, None), atol=1e-5)
+    # without length: the model's default window (80 frames = 4 s at 20 fps)
+    assert unconditional.sample(key, num=3, temperature=0.0).shape == (3, 80, POSE_DIM)
 
 
 def test_same_latent_different_controls_give_different_samples(conditional, key):
@@ -221,7 +223,7 @@ def trained():
         quick,
         data=dataclasses.replace(quick.data, window=WINDOW),
         levels=2,
-        steps=2,
+        K=2,
         hidden=32,
     )
     key = jax.random.key(0)

@@ -144,6 +144,8 @@ def test_log_prob_dropout_uses_key():
     np.testing.assert_allclose(
         model.log_prob(pose, control, key=jax.random.key(1), dropout=0.0), clean, rtol=1e-6
     )
+    with pytest.raises(ValueError, match="needs a key"):
+        model.log_prob(pose, control, dropout=0.7)
 
 
 def test_stream_step_equals_sample():

@@ -43,6 +43,10 @@ def test_kernel_scales_with_fps():
     assert all(kernel_for_fps(f) % 2 == 1 for f in (10, 24, 25, 50, 120))
     with pytest.raises(ValueError, match="fps"):
         kernel_for_fps(0)
+    # the model picks the kernel from its frame rate unless one is given
+    for fps, k in ((60.0, 25), (20.0, 9)):
+        model = nnx.eval_shape(lambda fps=fps: VAELSTM(fps=fps, rngs=nnx.Rngs(0)))
+        assert model.conv_kernel_sizes() == {k}
 
 
 @pytest.mark.parametrize("fps, t", [(20.0, 80), (60.0, 240)])
@@ -124,6 +128,8 @@ def test_elbo_terms_are_consistent():
     np.testing.assert_allclose(terms["elbo"], terms["log_lik"] - terms["kl"], rtol=1e-5)
     # evaluation is deterministic given the key; training mode (dropout) is not the same
     np.testing.assert_array_equal(terms["elbo"], again["elbo"])
+    # elbo(x, c) without a key is the reproducible draw of key 0
+    np.testing.assert_allclose(model.elbo(x, c), model.elbo(x, c, jax.random.key(0)), rtol=1e-6)
     assert not np.allclose(train["elbo"], terms["elbo"])
 
 

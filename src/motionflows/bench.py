@@ -78,7 +78,7 @@ SMOKE_TRAIN: dict[str, Any] = {
 """Training overrides of the smoke budget (every trained model; closed-form fits keep theirs)."""
 
 SMOKE_OVERRIDES: dict[str, dict[str, Any]] = {
-    "glow_fixed": {"levels": 2, "steps": 2, "hidden": 16},
+    "glow_fixed": {"levels": 2, "K": 2, "hidden": 16},
     "moglow": {"K": 2, "hidden": 16, "layers": 1},
     "vae_lstm": {
         "latent_dim": 16, "control_hidden": 8, "control_features": 16, "pose_hidden": 16,

@@ -16,7 +16,7 @@ line on stderr and exit with code 2.
 from __future__ import annotations
 
 import argparse
-import inspect
+import os
 import sys
 from pathlib import Path
 
@@ -152,16 +152,11 @@ def cmd_data(args) -> int:
         raise RunError("usage: motionflows data download bandai --dest DIR")
     if args.dataset != "bandai":
         raise RunError(f"unknown dataset {args.dataset!r}; downloadable: bandai")
-    try:
-        from motionflows.data.download import download_bandai
-    except ImportError as err:
-        raise RunError(f"the downloader is not available in this install ({err})") from None
-    kwargs = {}
-    params = inspect.signature(download_bandai).parameters
-    if args.url and "base_url" in params:
-        kwargs["base_url"] = args.url
-    result = download_bandai(args.dest, **kwargs)
-    return 0 if result is None or result is not False else 1
+    from motionflows.data.download import BASE_URL, download_bandai
+
+    base_url = args.url or os.environ.get("MOTIONFLOWS_BANDAI_URL") or BASE_URL
+    download_bandai(args.dest, base_url=base_url)
+    return 0
 
 
 def cmd_bench(args) -> int:
@@ -230,7 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
     d = dsub.add_parser("download", help="download a dataset")
     d.add_argument("dataset", help="bandai")
     d.add_argument("--dest", required=True, help="folder to download into")
-    d.add_argument("--url", default=None, help=argparse.SUPPRESS)
+    d.add_argument(
+        "--url",
+        default=None,
+        help="base URL of the dataset repository's files (default: $MOTIONFLOWS_BANDAI_URL, "
+        "else GitHub raw at the pinned commit), e.g. a local mirror",
+    )
     p.set_defaults(func=cmd_data)
 
     p = sub.add_parser("bench", help="compare every model on one split (BENCHMARK.md)")

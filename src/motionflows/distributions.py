@@ -62,7 +62,10 @@ class _Base(nnx.Module):
 
     _name = "Distribution"
 
-    def __init__(self, event_shape, loc=None, scale=None):
+    def __init__(self, event_shape=None, loc=None, scale=None):
+        if event_shape is None:  # every axis of loc/scale is an event axis; else any (T, D)
+            given = [jnp.shape(p) for p in (loc, scale) if p is not None]
+            event_shape = jnp.broadcast_shapes(*given) if given else (None, None)
         self.event_shape = _event_shape(event_shape)
         self.loc = _as_param(loc, f"{self._name} loc", self.event_shape)
         self.scale = _as_param(scale, f"{self._name} scale", self.event_shape)
@@ -141,7 +144,10 @@ class Normal(_Base):
 
     ``Normal(event_shape)`` is the standard normal; ``Normal(event_shape, loc, scale)`` the
     diagonal one (loc / scale broadcastable to event_shape, optionally with leading batch
-    axes). log p(x) = sum_event [-(x - loc)^2 / (2 scale^2) - log scale - log(2 pi) / 2].
+    axes). Without ``event_shape``: ``Normal()`` is the standard normal over (..., T, D)
+    events of any size (``log_prob`` only; sampling needs sizes), and
+    ``Normal(loc=..., scale=...)`` takes every axis of loc / scale as an event axis.
+    log p(x) = sum_event [-(x - loc)^2 / (2 scale^2) - log scale - log(2 pi) / 2].
     ``None`` in event_shape matches any size in ``log_prob`` (e.g. ``Normal((None, 63))``).
     """
 
@@ -158,7 +164,8 @@ class Normal(_Base):
 
 
 class StudentT(_Base):
-    """Factorised Student-t with ``df`` degrees of freedom over ``event_shape``.
+    """Factorised Student-t with ``df`` degrees of freedom over ``event_shape`` (None: as
+    in :class:`Normal`).
 
     log p(x) = sum_event [lgamma((df + 1) / 2) - lgamma(df / 2) - log(pi df) / 2 - log scale
                           - (df + 1) / 2 * log(1 + ((x - loc) / scale)^2 / df)].
@@ -166,7 +173,9 @@ class StudentT(_Base):
 
     _name = "StudentT"
 
-    def __init__(self, event_shape, df, loc=None, scale=None):
+    def __init__(self, event_shape=None, df=None, loc=None, scale=None):
+        if df is None:
+            raise ValueError("StudentT needs df (degrees of freedom > 0), e.g. StudentT(df=5.0)")
         super().__init__(event_shape, loc, scale)
         df_arr = jnp.asarray(df, jnp.float32)
         if not isinstance(df_arr, jax.core.Tracer) and bool(jnp.any(df_arr <= 0)):

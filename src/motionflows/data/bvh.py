@@ -344,8 +344,11 @@ def local_transforms(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
     return rot, trans
 
 
-def forward_kinematics(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
-    """World joint positions (F, J, 3) and rotations (F, J, 3, 3), in file units.
+def forward_kinematics(
+    bvh: BVH, *, return_rotations: bool = False
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """World joint positions (F, J, 3) in file units; with ``return_rotations`` the pair
+    (positions, world rotations (F, J, 3, 3)).
 
     ``R_w[j] = R_w[parent] @ R_local[j]``, ``p_w[j] = p_w[parent] + R_w[parent] @ t[j]``;
     vectorised over frames, one pass over joints in file order (parents come first).
@@ -362,4 +365,4 @@ def forward_kinematics(bvh: BVH) -> tuple[np.ndarray, np.ndarray]:
             world_p[:, j] = world_p[:, parent] + np.einsum(
                 "fab,fb->fa", world_r[:, parent], trans[:, j]
             )
-    return world_p, world_r
+    return (world_p, world_r) if return_rotations else world_p

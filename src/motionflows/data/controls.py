@@ -24,6 +24,18 @@ PRESETS: tuple[str, ...] = (
 )  # fmt: skip
 
 
+def canonical_preset(name: str) -> str | None:
+    """The preset ``name`` refers to, spelling-tolerant (case, ``_`` or ``-``,
+    ``figure8`` / ``figure-8``), or None when it names none."""
+    key = str(name).strip().lower().replace("_", "-").replace(" ", "-")
+    key = {
+        "figure8": "figure-eight",
+        "figure-8": "figure-eight",
+        "figureeight": "figure-eight",
+    }.get(key, key)
+    return key if key in PRESETS else None
+
+
 def _phases(u: np.ndarray, name: str) -> np.ndarray:
     """(T, 3) m/s, m/s, rad/s as a function of normalised time u in [0, 1)."""
     fwd, side, turn = np.zeros_like(u), np.zeros_like(u), np.zeros_like(u)
@@ -55,8 +67,9 @@ def preset(name: str, seconds: float, fps: float = DEFAULT_FPS) -> np.ndarray:
     ``walk-turn-left/right`` turn by about 90 degrees in the middle third; ``figure-eight``
     makes a full left circle then a full right circle at walking speed.
     """
-    if name not in PRESETS:
+    if canonical_preset(name) is None:
         raise ValueError(f"unknown control preset {name!r}; valid: {', '.join(PRESETS)}")
+    name = canonical_preset(name)
     if not (np.isfinite(seconds) and seconds > 0 and np.isfinite(fps) and fps > 0):
         raise ValueError(f"seconds and fps must be positive, got {seconds}, {fps}")
     n = max(1, int(round(seconds * fps)))
@@ -102,7 +115,7 @@ def load_control(
     ``round(seconds * fps)`` frames.
     """
     text = str(path_or_name)
-    if text in PRESETS:
+    if canonical_preset(text) is not None and not text.endswith(".npy"):
         if seconds is None:
             raise ValueError(f"preset {text!r} needs seconds=")
         return preset(text, seconds, fps)

@@ -168,6 +168,11 @@ class Standardizer:
     def log_det_per_frame(self) -> float:
         return float(-np.sum(np.log(self.pose_std.astype(np.float64))))
 
+    def log_jacobian(self, num_frames: int = 1) -> float:
+        """log|det d normalize_pose / dx| over ``num_frames`` frames (nats): add it to a
+        standardised-space log-likelihood to get the metre-space one."""
+        return num_frames * self.log_det_per_frame
+
     def normalize_pose(self, x):
         return (x - self.pose_mean) / self.pose_std
 

@@ -193,7 +193,7 @@ def joint_positions(bvh: BVH, skeleton: str | SkeletonMapping | dict = "bandai")
             "register a mapping for this file",
             path=bvh.path,
         )
-    world_p, world_r = forward_kinematics(bvh)
+    world_p, world_r = forward_kinematics(bvh, return_rotations=True)
     out = np.empty((bvh.num_frames, NUM_JOINTS, 3), dtype=np.float64)
     for k, joint in enumerate(mapping.joints):
         if isinstance(joint, str):

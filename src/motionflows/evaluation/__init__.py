@@ -1,5 +1,6 @@
 """Evaluation: likelihood tables (``likelihood``) and motion metrics (``motion``)."""
 
+from motionflows.evaluation import likelihood, motion
 from motionflows.evaluation.likelihood import (
     bits_per_frame_standardized,
     bootstrap_ci,
@@ -7,11 +8,49 @@ from motionflows.evaluation.likelihood import (
     likelihood_rows,
     nats_per_frame_metres,
 )
+from motionflows.evaluation.motion import (
+    bone_length_variation,
+    bone_lengths,
+    contact_rate,
+    diversity,
+    foot_sliding,
+    frechet_distance,
+    frechet_pose_distance,
+    frechet_window_distance,
+    integrate_root,
+    jerk,
+    motion_error,
+    motion_quality,
+    pose_error,
+    pose_features,
+    prediction_errors,
+    prediction_frames,
+    to_global,
+)
 
 __all__ = [
     "bits_per_frame_standardized",
+    "bone_length_variation",
+    "bone_lengths",
     "bootstrap_ci",
+    "contact_rate",
+    "diversity",
+    "foot_sliding",
     "format_table",
+    "frechet_distance",
+    "frechet_pose_distance",
+    "frechet_window_distance",
+    "integrate_root",
+    "jerk",
+    "likelihood",
     "likelihood_rows",
+    "motion",
+    "motion_error",
+    "motion_quality",
     "nats_per_frame_metres",
+    "pose_error",
+    "pose_features",
+    "prediction_errors",
+    "prediction_frames",
+    "to_global",
 ]

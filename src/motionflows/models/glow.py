@@ -51,7 +51,7 @@ from motionflows.bijectors import (
     squeeze_time,
     unsqueeze_time,
 )
-from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
 from motionflows.nets.conv import ConvNet, TimeConv
 
 Array = jax.Array
@@ -97,6 +97,9 @@ class Glow(nnx.Module):
       prior: "standard" (paper) or "learned" (glow-pytorch's conditional split prior).
       compute_dtype: None/"float32", or "bfloat16" for the coupling nets' convolutions.
       coupling_eps: floor of the coupling scale (see ``AffineCoupling``).
+      length: the window length T that unconditional ``sample`` draws by default (a
+        multiple of 2**levels; None = 80 frames, 4 s at 20 fps); ``log_prob`` accepts any
+        such T.
       rngs: ``nnx.Rngs`` for parameter initialisation.
 
     Parameters start so that every coupling is a fixed scaling and every learned prior is
@@ -115,6 +118,7 @@ class Glow(nnx.Module):
         prior: str = "standard",
         compute_dtype: Any = None,
         coupling_eps: float = 1e-6,
+        length: int | None = None,
         rngs: nnx.Rngs,
     ):
         if conditional is not None:
@@ -136,6 +140,9 @@ class Glow(nnx.Module):
         self.prior = prior
         self.compute_dtype = _normalize_dtype(compute_dtype)
         self.coupling_eps = float(coupling_eps)
+        self.length = DEFAULT_WINDOW if length is None else int(length)  # default sample T
+        if length is not None:
+            self._check_length(self.length)
 
         flows, splits, priors = [], [], []
         kept = self.pose_dim
@@ -368,7 +375,8 @@ class Glow(nnx.Module):
         """Draw windows x = f(temperature * eps), eps ~ N(0, I).
 
         Conditional: ``control`` (B, T, control_dim) (or (T, control_dim)) fixes batch and
-        T. Unconditional: pass ``num`` (batch size) and ``length`` (T). temperature 0 gives
+        T. Unconditional: pass ``num`` (batch size) and optionally ``length`` (T; default
+        the constructor's ``length``). temperature 0 gives
         the decoded zero latent.
         """
         if control is not None:
@@ -389,12 +397,13 @@ class Glow(nnx.Module):
                     f"This Glow is conditional: Glow.sample needs a control of shape "
                     f"(B, T, {self.control_dim})"
                 )
-            if num is None or length is None:
+            if num is None:
                 raise ValueError(
-                    "Glow.sample of an unconditional model needs num (batch size) and length "
-                    "(frames), e.g. model.sample(key, num=8, length=64)"
+                    "Glow.sample of an unconditional model needs num (batch size), e.g. "
+                    "model.sample(key, num=8) (length defaults to the model's length, "
+                    f"{self.length} frames)"
                 )
-            batch, t = (int(num),), int(length)
+            batch, t = (int(num),), int(self.length if length is None else length)
         self._check_length(t)
         eps = jax.random.normal(key, batch + (t * self.pose_dim,), jnp.float32)
         return self.decode(temperature * eps, control)

@@ -417,6 +417,11 @@ class MoGlow(nnx.Module):
         with a zero history. With ``key`` the training-time history dropout (probability
         ``dropout``, default ``self.dropout``) is applied; without a key there is none.
         """
+        if key is None and dropout:
+            raise ValueError(
+                f"MoGlow.log_prob: dropout={dropout} needs a key to draw the dropped history "
+                "frames (pass key=jax.random.key(...)), or leave dropout unset for clean scoring"
+            )
         rate = 0.0 if key is None else (self.dropout if dropout is None else float(dropout))
         z, log_det = self.inverse_and_log_det(
             pose, context=control, scope=scope, dropout=rate, key=key

@@ -41,8 +41,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from motionflows.data.names import CONTROL_DIM, POSE_DIM
-from motionflows.nets.vae import ConvDecoder, ConvEncoder
+from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
+from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -82,7 +82,9 @@ class VAELSTM(nnx.Module):
     """The VAE-LSTM model. Build with :meth:`__init__`; all methods are pure JAX.
 
     Args:
-      kernel: temporal conv width (odd; see ``nets.vae.kernel_for_fps``).
+      kernel: temporal conv width (odd); None = ``nets.vae.kernel_for_fps(fps)``, the
+        paper's 25 frames at 60 fps (about 0.4 s) scaled to the frame rate (9 at 20 fps).
+      fps: frame rate of the data, used only when ``kernel`` is None.
       latent_dim: D, the size of z_t and of the LSTM state (they must match, because the
         test-time recurrence feeds c_{t-1} where training feeds z_t).
       control_hidden / control_features: widths of the control encoder (64, 128).
@@ -105,7 +107,8 @@ class VAELSTM(nnx.Module):
     def __init__(
         self,
         *,
-        kernel: int = 9,
+        kernel: int | None = None,
+        fps: float = DEFAULT_FPS,
         latent_dim: int = 128,
         control_hidden: int = 64,
         control_features: int = 128,
@@ -122,6 +125,8 @@ class VAELSTM(nnx.Module):
         sampler_iwae_samples: tuple[int, ...] = (),
         rngs: nnx.Rngs,
     ):
+        if kernel is None:
+            kernel = kernel_for_fps(fps)
         if kernel < 1 or kernel % 2 == 0:
             raise ValueError(f"kernel must be a positive odd integer, got {kernel}")
         if faithful and pose_features != 2 * latent_dim:
@@ -133,6 +138,7 @@ class VAELSTM(nnx.Module):
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.kernel = int(kernel)
+        self.fps = float(fps)
         self.latent_dim = int(latent_dim)
         self.faithful = bool(faithful)
         self.learn_variance = bool(learn_variance) and not faithful
@@ -255,11 +261,14 @@ class VAELSTM(nnx.Module):
         return {"log_lik": log_lik, "kl": kl, "elbo": log_lik - kl}
 
     def elbo(
-        self, x: jax.Array, c: jax.Array, key: jax.Array, *, num_samples: int = 1
+        self, x: jax.Array, c: jax.Array, key: jax.Array | None = None, *, num_samples: int = 1
     ) -> jax.Array:
         """ELBO per window (B,), nats, standardised space, averaged over ``num_samples`` draws
-        of z ~ q(z|x) (an unbiased estimate of E_q[log p(x|z,c)] - KL). Evaluation mode."""
-        keys = jax.random.split(key, num_samples)
+        of z ~ q(z|x) (an unbiased estimate of E_q[log p(x|z,c)] - KL). Evaluation mode.
+        ``key`` None uses ``jax.random.key(0)``: a fixed, reproducible draw."""
+        if num_samples < 1:
+            raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+        keys = jax.random.split(jax.random.key(0) if key is None else key, num_samples)
         return jax.lax.map(lambda k: self.elbo_terms(x, c, k)["elbo"], keys).mean(axis=0)
 
     def log_weights(self, x: jax.Array, c: jax.Array, key: jax.Array, num_samples: int):
