@@ -17,6 +17,7 @@ import pytest
 
 from motionflows import bench
 from motionflows.config import to_dict
+from motionflows.data import load_dataset
 from motionflows.errors import RunError
 
 
@@ -222,3 +223,21 @@ def test_clear_errors(tmp_path, capsys):
         bench.bench_config("gaussian", "huge", bench.parse_data_spec("synthetic"))
     assert bench.main(["--models", "nope", "--out", str(tmp_path)]) == 2
     assert "unknown model" in capsys.readouterr().err
+
+
+def test_motion_metrics_count_and_drop_diverged_samples():
+    rng = np.random.default_rng(0)
+    ds = load_dataset("synthetic", n_clips=4, seconds=4.0, window=40, hop=40, cache=False)
+    gt = np.asarray(ds.train.pose[:4], np.float64)
+    ctrl = np.asarray(ds.train.control[:4], np.float64)
+    samples = gt + 0.01 * rng.normal(size=gt.shape)
+    clean = bench.motion_metrics(samples[1:], ctrl[1:], gt[1:], samples[1:], 20.0)
+    blown = samples.copy()
+    blown[0, 30:] = 1e20  # a flow inverse that blew up late in the window
+    out = bench.motion_metrics(blown, ctrl, gt, blown, 20.0)
+    assert out["diverged"] == pytest.approx(0.25) and clean["diverged"] == 0.0
+    for key in ("foot_sliding", "jerk", "fd_pose", "diversity", "pose_error"):
+        assert out[key] == pytest.approx(clean[key]), key
+    blown[1:, 5, 0] = np.nan
+    with pytest.raises(ValueError, match="all 4 samples diverged"):
+        bench.motion_metrics(blown, ctrl, gt, None, 20.0)

@@ -980,6 +980,9 @@ def _data_tag(data: DataConfig) -> str:
 # motion metrics and GIFs (thin adapters over motionflows.evaluation.motion and render)
 # --------------------------------------------------------------------------------------------
 
+DIVERGED_METRES = 10.0
+"""A sample with a root-relative coordinate beyond this (or NaN/inf) counts as diverged."""
+
 MOTION_METRICS: dict[str, dict[str, str]] = {
     "foot_sliding": {"label": "foot sliding", "unit": "m/s"},
     "contact_rate": {"label": "foot contact rate", "unit": "fraction"},
@@ -990,6 +993,7 @@ MOTION_METRICS: dict[str, dict[str, str]] = {
     "diversity": {"label": "diversity, one control", "unit": "m"},
     "pose_error": {"label": "pose error", "unit": "m"},
     "motion_error": {"label": "motion error", "unit": "m"},
+    "diverged": {"label": "diverged samples", "unit": "fraction"},
 }
 """Motion metrics in report order (all from ``motionflows.evaluation.motion``)."""
 
@@ -1005,8 +1009,17 @@ MOTION_NOTE = (
     "control) between one sample and the test motion, averaged over the report times "
     "(their frames 70, 90, 120, 160, 210 at 60 fps, at this frame rate, those inside the "
     "window). The ground-truth row scores the test motion itself (errors and FD are 0 by "
-    "construction)."
+    f"construction). Diverged samples: the fraction holding NaN/inf or a joint more than "
+    f"{DIVERGED_METRES:g} m from the root (a flow's inverse can blow up far from its training "
+    "data); the other metrics are over the remaining samples."
 )
+
+
+def diverged(samples_m) -> np.ndarray:
+    """(N,) bool: sample n holds NaN/inf or a root-relative coordinate beyond
+    :data:`DIVERGED_METRES`."""
+    x = np.asarray(samples_m, np.float64).reshape(len(samples_m), -1)
+    return ~np.all(np.isfinite(x) & (np.abs(x) <= DIVERGED_METRES), axis=1)
 
 
 def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -> dict:
@@ -1015,18 +1028,32 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
     samples under one control (None for the ground truth, which has one motion per control).
 
     Returns the scalars of :data:`MOTION_METRICS` plus ``"prediction"``: the per-time errors.
+    Diverged samples (see :func:`diverged`) are counted in ``"diverged"`` and left out of
+    every other metric; ValueError when all diverged.
     """
     from motionflows.evaluation import motion as mm
 
     samples_m = np.asarray(samples_m, np.float64)
-    if not np.all(np.isfinite(samples_m)):
-        bad = int(np.sum(~np.all(np.isfinite(samples_m), axis=(1, 2))))
-        raise ValueError(f"{bad} of {len(samples_m)} samples hold NaN/inf; no motion metrics")
+    ok = ~diverged(samples_m)
+    if not ok.any():
+        raise ValueError(
+            f"all {len(samples_m)} samples diverged (NaN/inf or beyond {DIVERGED_METRES:g} m); "
+            "no motion metrics"
+        )
+    frac = 1.0 - float(ok.mean())
+    samples_m = samples_m[ok]
+    control_m = np.asarray(control_m)[ok]
+    reference_m = np.asarray(reference_m)[ok]
+    if diversity_m is not None:
+        diversity_m = np.asarray(diversity_m)[~diverged(diversity_m)]
     out: dict[str, Any] = dict(mm.motion_quality(samples_m, control_m, fps=fps))
+    out["diverged"] = frac
     out["fd_pose"] = mm.frechet_pose_distance(reference_m, samples_m)
     out["fd_window3"] = mm.frechet_window_distance(reference_m, samples_m, frames=3)
     out["diversity"] = (
-        None if diversity_m is None else mm.diversity(np.asarray(diversity_m)[:, None])
+        None
+        if diversity_m is None or len(diversity_m) < 2
+        else mm.diversity(np.asarray(diversity_m)[:, None])
     )
     window = samples_m.shape[1]
     frames = [f for f in mm.prediction_frames(fps) if f < window]
