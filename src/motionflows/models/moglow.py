@@ -129,7 +129,7 @@ class LSTMConditioner(nnx.Module):
         return matmul(y, self.w_out[...], self.compute_dtype) + self.b_out[...]
 
     def __call__(self, x_a: Array, context: Array) -> Array:
-        y, _ = self.lstm(jnp.concatenate([x_a, context], axis=-1))
+        y, _ = self.lstm(x_a, context=context)  # = on [x_a, context], no d/d context
         return self._head(y)
 
     def step(self, x_a: Array, context: Array, carry):

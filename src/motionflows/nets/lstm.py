@@ -16,15 +16,18 @@ are stored separately (as there) and summed when used.
 
 Speed: :meth:`LSTM.__call__` computes each layer's input projection ``x @ W_ih + b`` for all
 frames at once (one large matmul) and keeps only ``h @ W_hh`` inside the time scan.
-``compute_dtype`` (e.g. ``"bfloat16"``) runs the matmuls in that dtype with float32
-accumulation (``preferred_element_type=float32``); the cell state, gates' nonlinearities and
-outputs stay float32.
+``compute_dtype`` (e.g. ``"bfloat16"``) runs every matmul, forward and backward, in that
+dtype with float32 accumulation (``preferred_element_type=float32``); the cell state, gates'
+nonlinearities, outputs and gradients stay float32 (:func:`matmul` and :func:`recurrence`
+carry their own backward passes so that autodiff does not fall back to float32 matmuls;
+that mode supports reverse-mode autodiff only).
 
 Carry: a tuple with one ``(h, c)`` pair per layer, each of shape (*batch, hidden), float32.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -34,23 +37,145 @@ from flax import nnx
 Array = jax.Array
 Carry = tuple[tuple[Array, Array], ...]
 
-__all__ = ["LSTM", "LSTMLayer", "matmul"]
+__all__ = ["LSTM", "LSTMLayer", "matmul", "recurrence"]
+
+
+def _mm(x: Array, w: Array, cd) -> Array:
+    """x @ w with operands in ``cd`` (None: as given) and a float32 result."""
+    if cd is None:
+        return jnp.matmul(x, w)
+    return jnp.matmul(x.astype(cd), w.astype(cd), preferred_element_type=jnp.float32)
+
+
+def _outer_sum(x: Array, g: Array, cd) -> Array:
+    """sum over all leading axes of x[..., i] g[..., o]: (in, out) float32, one matmul."""
+    x2 = x.reshape(-1, x.shape[-1])
+    g2 = g.reshape(-1, g.shape[-1])
+    return _mm(x2.T, g2, cd)
 
 
 def matmul(x: Array, w: Array, compute_dtype: str | None = None) -> Array:
-    """``x @ w`` in float32, or in ``compute_dtype`` with float32 accumulation."""
+    """``x @ w`` for x (..., in), w (in, out): float32, or operands in ``compute_dtype``
+    with float32 accumulation, in the backward pass too (dx = g @ w^T, dw = x^T g)."""
     if compute_dtype is None:
         return jnp.matmul(x, w)
-    cd = jnp.dtype(compute_dtype)
-    return jnp.matmul(x.astype(cd), w.astype(cd), preferred_element_type=jnp.float32)
+    return _matmul_low(x, w, jnp.dtype(compute_dtype).name)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _matmul_low(x: Array, w: Array, cd: str) -> Array:
+    return _mm(x, w, cd)
+
+
+def _matmul_low_fwd(x, w, cd):
+    return _mm(x, w, cd), (x, w)
+
+
+def _matmul_low_bwd(cd, res, g):
+    x, w = res
+    return _mm(g, w.T, cd).astype(x.dtype), _outer_sum(x, g, cd).astype(w.dtype)
+
+
+_matmul_low.defvjp(_matmul_low_fwd, _matmul_low_bwd)
+
+
+def _gates(pre: Array) -> tuple[Array, Array, Array, Array]:
+    """Pre-activations (..., 4H), order i, f, g, o -> (sigmoid i, sigmoid f, tanh g, sigmoid o)."""
+    i, f, g, o = jnp.split(pre, 4, axis=-1)
+    return jax.nn.sigmoid(i), jax.nn.sigmoid(f), jnp.tanh(g), jax.nn.sigmoid(o)
 
 
 def _cell(gates: Array, c: Array) -> tuple[Array, Array]:
     """Gate pre-activations (..., 4H) in order i, f, g, o and cell c -> (h', c')."""
-    i, f, g, o = jnp.split(gates, 4, axis=-1)
-    c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
-    h = jax.nn.sigmoid(o) * jnp.tanh(c)
+    i, f, g, o = _gates(gates)
+    c = f * c + i * g
+    h = o * jnp.tanh(c)
     return h, c
+
+
+def _recurrence_forward(gx, w_hh, carry, cd):
+    w = w_hh if cd is None else w_hh.astype(cd)  # cast once, outside the time loop
+
+    def body(state, g_x):
+        h, c = state
+        pre = g_x + _mm(h, w, cd)
+        h, c = _cell(pre, c)
+        return (h, c), (h, c, pre)
+
+    carry, (hs, cs, pres) = jax.lax.scan(body, carry, gx)
+    return hs, carry, cs, pres
+
+
+def recurrence(gx: Array, w_hh: Array, carry: tuple[Array, Array], compute_dtype=None):
+    """The LSTM recurrence over time-major projected inputs gx (T, ..., 4H) (``x_t @ W_ih`` plus
+    both biases) from state ``carry`` = (h, c) (..., H): returns (outputs h_1..h_T
+    (T, ..., H), final (h, c)). One ``lax.scan``; ``compute_dtype`` as in :func:`matmul`.
+
+    float32: plain autodiff through the scan (forward and reverse mode). With
+    ``compute_dtype`` (bfloat16): a custom VJP, so that the backward matmuls also run in
+    bfloat16 (autodiff would upcast them to float32) and dW_hh is accumulated in float32.
+    Its reverse scan carries (dh, dc): dc_t += dh_t o (1 - tanh(c_t)^2), gate cotangents
+    dg_t = [dc_t g i(1-i), dc_t c_{t-1} f(1-f), dc_t i (1-g^2), dh_t tanh(c_t) o(1-o)],
+    dh_{t-1} = dg_t W_hh^T, dc_{t-1} = dc_t f; then dW_hh = sum_t h_{t-1}^T dg_t is one
+    matmul over all frames (not T small ones inside the loop). Reverse mode only
+    (``jax.grad``); use float32 for ``jax.jvp`` / ``jax.jacfwd``.
+    """
+    if compute_dtype is None:
+        hs, final, _, _ = _recurrence_forward(gx, w_hh, carry, None)
+        return hs, final
+    return _recurrence_low(gx, w_hh, carry, jnp.dtype(compute_dtype).name)
+
+
+def _previous(carry, hs, cs):
+    """(h_{t-1}, c_{t-1}) for t = 1..T: the initial state, then the outputs shifted by one."""
+    h_prev = jnp.concatenate([carry[0][None], hs[:-1]], axis=0)
+    c_prev = jnp.concatenate([carry[1][None], cs[:-1]], axis=0)
+    return h_prev, c_prev
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
+def _recurrence_low(gx, w_hh, carry, cd):
+    hs, final, _, _ = _recurrence_forward(gx, w_hh, carry, cd)
+    return hs, final
+
+
+def _recurrence_low_fwd(gx, w_hh, carry, cd):
+    hs, final, cs, pres = _recurrence_forward(gx, w_hh, carry, cd)
+    h_prev, c_prev = _previous(carry, hs, cs)
+    return (hs, final), (w_hh, h_prev, c_prev, cs, pres)
+
+
+def _recurrence_low_bwd(cd, res, cts):
+    w_hh, h_prev, c_prev, cs, pres = res
+    d_hs, (dh_last, dc_last) = cts
+    w_t = w_hh.astype(cd).T
+
+    def body(state, inputs):
+        dh_next, dc_next = state
+        d_h, c_p, c, pre = inputs
+        i, f, g, o = _gates(pre)
+        dh = d_h + dh_next
+        tc = jnp.tanh(c)
+        dc = dc_next + dh * o * (1.0 - tc * tc)
+        d_pre = jnp.concatenate(
+            [
+                dc * g * i * (1.0 - i),
+                dc * c_p * f * (1.0 - f),
+                dc * i * (1.0 - g * g),
+                dh * tc * o * (1.0 - o),
+            ],
+            axis=-1,
+        )
+        return (_mm(d_pre, w_t, cd), dc * f), d_pre
+
+    (dh0, dc0), d_pres = jax.lax.scan(
+        body, (dh_last, dc_last), (d_hs, c_prev, cs, pres), reverse=True
+    )
+    d_w = _outer_sum(h_prev, d_pres, cd).astype(w_hh.dtype)
+    return d_pres, d_w, (dh0, dc0)
+
+
+_recurrence_low.defvjp(_recurrence_low_fwd, _recurrence_low_bwd)
 
 
 class LSTMLayer(nnx.Module):
@@ -82,31 +207,26 @@ class LSTMLayer(nnx.Module):
         zeros = jnp.zeros((*batch_shape, self.hidden), jnp.float32)
         return zeros, zeros
 
-    def input_projection(self, x: Array) -> Array:
-        """``x @ W_ih + b_ih + b_hh`` for any leading shape: (..., in) -> (..., 4H) float32."""
-        return matmul(x, self.w_ih[...], self.compute_dtype) + (self.b_ih[...] + self.b_hh[...])
+    def input_projection(self, x: Array, context: Array | None = None) -> Array:
+        """``x @ W_ih + b_ih + b_hh`` for any leading shape: (..., in) -> (..., 4H) float32.
+
+        With ``context`` (..., c), the input is [x, context] (in = x's width + c), computed as
+        ``x @ W_ih[:n] + context @ W_ih[n:]``: autodiff then forms no input gradient for a
+        context that does not depend on what is differentiated.
+        """
+        w, b = self.w_ih[...], self.b_ih[...] + self.b_hh[...]
+        if context is None:
+            return matmul(x, w, self.compute_dtype) + b
+        n = x.shape[-1]
+        cd = self.compute_dtype
+        return matmul(x, w[:n], cd) + matmul(context, w[n:], cd) + b
 
     def scan_projected(self, gx: Array, carry: tuple[Array, Array]):
         """Run the recurrence over time-major projected inputs ``gx`` (T, ..., 4H).
 
-        Returns (outputs (T, ..., H), final carry).
+        Returns (outputs (T, ..., H), final carry). See :func:`recurrence`.
         """
-        cd = self.compute_dtype
-        w_hh = self.w_hh[...]
-        if cd is not None:
-            w_hh = w_hh.astype(cd)  # cast once, outside the time loop
-
-        def body(state, g_x):
-            h, c = state
-            if cd is None:
-                g = g_x + h @ w_hh
-            else:
-                g = g_x + jnp.matmul(h.astype(cd), w_hh, preferred_element_type=jnp.float32)
-            h, c = _cell(g, c)
-            return (h, c), h
-
-        carry, ys = jax.lax.scan(body, carry, gx)
-        return ys, carry
+        return recurrence(gx, self.w_hh[...], carry, self.compute_dtype)
 
     def step(self, x_t: Array, carry: tuple[Array, Array]):
         """One frame: x_t (..., in) -> (h' (..., H), (h', c'))."""
@@ -159,23 +279,35 @@ class LSTM(nnx.Module):
         """Zero state: one ``(h, c)`` pair per layer, each (*batch_shape, hidden)."""
         return tuple(layer.initial_carry(batch_shape) for layer in self.layers)
 
-    def _check(self, x: Array, min_ndim: int) -> None:
-        if x.ndim < min_ndim or x.shape[-1] != self.in_features:
+    def _check(self, x: Array, min_ndim: int, extra: int = 0) -> None:
+        if x.ndim < min_ndim or x.shape[-1] + extra != self.in_features:
+            got = f"{tuple(x.shape)}" + (f" plus {extra} context features" if extra else "")
             raise ValueError(
                 f"LSTM expects input (..., {'T, ' if min_ndim == 2 else ''}{self.in_features}),"
-                f" got shape {tuple(x.shape)}"
+                f" got shape {got}"
             )
 
-    def __call__(self, x: Array, carry: Carry | None = None) -> tuple[Array, Carry]:
-        self._check(x, 2)
+    def __call__(
+        self, x: Array, carry: Carry | None = None, *, context: Array | None = None
+    ) -> tuple[Array, Carry]:
+        """``context`` (..., T, c): features appended to x's (the same as calling on the
+        concatenation), projected separately (see :meth:`LSTMLayer.input_projection`)."""
+        if context is not None and context.shape[:-1] != x.shape[:-1]:
+            raise ValueError(
+                f"LSTM: context {tuple(context.shape)} must share x's leading axes "
+                f"{tuple(x.shape[:-1])}"
+            )
+        self._check(x, 2, 0 if context is None else context.shape[-1])
         batch_shape = x.shape[:-2]
         if carry is None:
             carry = self.initial_carry(batch_shape)
         # Time-major once; every layer then works on (T, ..., features).
         h = jnp.moveaxis(x, -2, 0)
+        ctx = None if context is None else jnp.moveaxis(context, -2, 0)
         new_carry = []
         for layer, state in zip(self.layers, carry, strict=True):
-            h, state = layer.scan_projected(layer.input_projection(h), state)
+            h, state = layer.scan_projected(layer.input_projection(h, ctx), state)
+            ctx = None  # only the first layer reads the context
             new_carry.append(state)
         return jnp.moveaxis(h, 0, -2), tuple(new_carry)
 
