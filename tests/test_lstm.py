@@ -186,3 +186,23 @@ def test_forward_mode_matches_reverse_mode():
     rev = jax.jacrev(lambda x: lstm(x)[0])(x)
     np.testing.assert_allclose(fwd, rev, atol=1e-5)
     assert float(jnp.abs(fwd).max()) > 1e-2  # a real dependence
+
+
+def test_low_precision_matmul_backward_is_low_precision_and_close():
+    from motionflows.nets.precision import matmul
+
+    x = jax.random.normal(jax.random.key(10), (3, 5, 16))
+    w = jax.random.normal(jax.random.key(11), (16, 8))
+    r = jax.random.normal(jax.random.key(12), (3, 5, 8))
+
+    def loss(x, w, cd):
+        return jnp.sum(matmul(x, w, cd) * r)
+
+    g32 = jax.grad(loss, argnums=(0, 1))(x, w, None)
+    g16 = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)(x, w, "bfloat16")
+    for a, b in zip(g16, g32, strict=True):
+        assert a.dtype == jnp.float32
+        assert float(jnp.linalg.norm(a - b)) <= 2e-2 * float(jnp.linalg.norm(b))
+        assert not np.allclose(a, b, rtol=0, atol=1e-6)  # bfloat16 operands were used
+    # x @ w's backward for this loss is exact in float32: dx = r @ w^T, dw = x^T r
+    np.testing.assert_allclose(g32[0], r @ w.T, rtol=1e-5, atol=1e-5)

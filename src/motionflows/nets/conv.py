@@ -14,7 +14,8 @@ at exactly zero so a freshly built coupling is the identity map up to its fixed 
 
 Precision: parameters are float32. With ``compute_dtype=jnp.bfloat16`` the inputs and
 kernels are cast to bfloat16 for each convolution, products are accumulated in float32
-(``preferred_element_type``), biases and ReLUs run in float32, and the output is always
+(``preferred_element_type``), in the backward pass too (:func:`motionflows.nets.precision.
+matmul`; reverse mode only), biases and ReLUs run in float32, and the output is always
 float32, so the flow's affine maps and log-dets stay float32 (DESIGN.md "Precision").
 """
 
@@ -25,6 +26,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import nnx
+
+from motionflows.nets.precision import matmul
 
 __all__ = ["ConvNet", "TimeConv"]
 
@@ -82,11 +85,7 @@ class TimeConv(nnx.Module):
             padded = jnp.pad(h, ((0, 0), (p, p), (0, 0)))
             h = jnp.concatenate([padded[:, j : j + t] for j in range(k)], axis=-1)
         w = self.kernel[...].reshape(k * c, self.out_features)
-        if self.compute_dtype is not None:
-            h = h.astype(self.compute_dtype)
-            w = w.astype(self.compute_dtype)
-        y = jnp.matmul(h, w, preferred_element_type=jnp.float32)
-        y = y.astype(jnp.float32) + self.bias[...]
+        y = matmul(h, w, self.compute_dtype) + self.bias[...]
         return y.reshape(lead + (t, self.out_features))
 
 

@@ -34,49 +34,12 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from motionflows.nets.precision import matmul, outer_sum, product
+
 Array = jax.Array
 Carry = tuple[tuple[Array, Array], ...]
 
-__all__ = ["LSTM", "LSTMLayer", "matmul", "recurrence"]
-
-
-def _mm(x: Array, w: Array, cd) -> Array:
-    """x @ w with operands in ``cd`` (None: as given) and a float32 result."""
-    if cd is None:
-        return jnp.matmul(x, w)
-    return jnp.matmul(x.astype(cd), w.astype(cd), preferred_element_type=jnp.float32)
-
-
-def _outer_sum(x: Array, g: Array, cd) -> Array:
-    """sum over all leading axes of x[..., i] g[..., o]: (in, out) float32, one matmul."""
-    x2 = x.reshape(-1, x.shape[-1])
-    g2 = g.reshape(-1, g.shape[-1])
-    return _mm(x2.T, g2, cd)
-
-
-def matmul(x: Array, w: Array, compute_dtype: str | None = None) -> Array:
-    """``x @ w`` for x (..., in), w (in, out): float32, or operands in ``compute_dtype``
-    with float32 accumulation, in the backward pass too (dx = g @ w^T, dw = x^T g)."""
-    if compute_dtype is None:
-        return jnp.matmul(x, w)
-    return _matmul_low(x, w, jnp.dtype(compute_dtype).name)
-
-
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _matmul_low(x: Array, w: Array, cd: str) -> Array:
-    return _mm(x, w, cd)
-
-
-def _matmul_low_fwd(x, w, cd):
-    return _mm(x, w, cd), (x, w)
-
-
-def _matmul_low_bwd(cd, res, g):
-    x, w = res
-    return _mm(g, w.T, cd).astype(x.dtype), _outer_sum(x, g, cd).astype(w.dtype)
-
-
-_matmul_low.defvjp(_matmul_low_fwd, _matmul_low_bwd)
+__all__ = ["LSTM", "LSTMLayer", "matmul", "recurrence"]  # matmul: from nets.precision
 
 
 def _gates(pre: Array) -> tuple[Array, Array, Array, Array]:
@@ -98,7 +61,7 @@ def _recurrence_forward(gx, w_hh, carry, cd):
 
     def body(state, g_x):
         h, c = state
-        pre = g_x + _mm(h, w, cd)
+        pre = g_x + product(h, w, cd)
         h, c = _cell(pre, c)
         return (h, c), (h, c, pre)
 
@@ -166,12 +129,12 @@ def _recurrence_low_bwd(cd, res, cts):
             ],
             axis=-1,
         )
-        return (_mm(d_pre, w_t, cd), dc * f), d_pre
+        return (product(d_pre, w_t, cd), dc * f), d_pre
 
     (dh0, dc0), d_pres = jax.lax.scan(
         body, (dh_last, dc_last), (d_hs, c_prev, cs, pres), reverse=True
     )
-    d_w = _outer_sum(h_prev, d_pres, cd).astype(w_hh.dtype)
+    d_w = outer_sum(h_prev, d_pres, cd).astype(w_hh.dtype)
     return d_pres, d_w, (dh0, dc0)
 
 

@@ -1,0 +1,59 @@
+"""Matrix products in float32 or in a low precision (bfloat16) with float32 accumulation.
+
+:func:`matmul` is the one product the conditioner networks use (LSTM, MLP heads, the Glow
+time convolution). With ``compute_dtype`` its backward pass is hand-written (a custom VJP)
+so that the gradient products also run with low-precision operands and float32
+accumulation; plain autodiff would upcast them to float32 (mixed-dtype dots). That mode is
+reverse-mode only (``jax.grad``); float32 (``compute_dtype=None``) is plain JAX and supports
+forward mode (``jax.jvp``, ``jax.jacfwd``) too.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+Array = jax.Array
+
+__all__ = ["matmul", "outer_sum", "product"]
+
+
+def product(x: Array, w: Array, cd) -> Array:
+    """x @ w with operands in ``cd`` (None: as given) and a float32 result."""
+    if cd is None:
+        return jnp.matmul(x, w)
+    return jnp.matmul(x.astype(cd), w.astype(cd), preferred_element_type=jnp.float32)
+
+
+def outer_sum(x: Array, g: Array, cd) -> Array:
+    """sum over all leading axes of x[..., i] g[..., o]: (in, out) float32, one matmul."""
+    x2 = x.reshape(-1, x.shape[-1])
+    g2 = g.reshape(-1, g.shape[-1])
+    return product(x2.T, g2, cd)
+
+
+def matmul(x: Array, w: Array, compute_dtype: str | None = None) -> Array:
+    """``x @ w`` for x (..., in), w (in, out): float32, or operands in ``compute_dtype``
+    with float32 accumulation, in the backward pass too (dx = g @ w^T, dw = x^T g)."""
+    if compute_dtype is None:
+        return jnp.matmul(x, w)
+    return _matmul_low(x, w, jnp.dtype(compute_dtype).name)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _matmul_low(x: Array, w: Array, cd: str) -> Array:
+    return product(x, w, cd)
+
+
+def _matmul_low_fwd(x, w, cd):
+    return product(x, w, cd), (x, w)
+
+
+def _matmul_low_bwd(cd, res, g):
+    x, w = res
+    return product(g, w.T, cd).astype(x.dtype), outer_sum(x, g, cd).astype(w.dtype)
+
+
+_matmul_low.defvjp(_matmul_low_fwd, _matmul_low_bwd)
