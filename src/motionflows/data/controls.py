@@ -67,9 +67,10 @@ def preset(name: str, seconds: float, fps: float = DEFAULT_FPS) -> np.ndarray:
     ``walk-turn-left/right`` turn by about 90 degrees in the middle third; ``figure-eight``
     makes a full left circle then a full right circle at walking speed.
     """
-    if canonical_preset(name) is None:
+    canonical = canonical_preset(name)
+    if canonical is None:
         raise ValueError(f"unknown control preset {name!r}; valid: {', '.join(PRESETS)}")
-    name = canonical_preset(name)
+    name = canonical
     if not (np.isfinite(seconds) and seconds > 0 and np.isfinite(fps) and fps > 0):
         raise ValueError(f"seconds and fps must be positive, got {seconds}, {fps}")
     n = max(1, int(round(seconds * fps)))
@@ -115,7 +116,7 @@ def load_control(
     ``round(seconds * fps)`` frames.
     """
     text = str(path_or_name)
-    if canonical_preset(text) is not None and not text.endswith(".npy"):
+    if canonical_preset(text) is not None:
         if seconds is None:
             raise ValueError(f"preset {text!r} needs seconds=")
         return preset(text, seconds, fps)

@@ -68,7 +68,8 @@ from motionflows.bijectors import (
     coupling_sizes,
 )
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
-from motionflows.nets.lstm import LSTM, matmul
+from motionflows.nets.lstm import LSTM
+from motionflows.nets.precision import matmul
 
 Array = jax.Array
 

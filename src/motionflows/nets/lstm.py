@@ -39,7 +39,7 @@ from motionflows.nets.precision import matmul, outer_sum, product
 Array = jax.Array
 Carry = tuple[tuple[Array, Array], ...]
 
-__all__ = ["LSTM", "LSTMLayer", "matmul", "recurrence"]  # matmul: from nets.precision
+__all__ = ["LSTM", "LSTMLayer", "recurrence"]
 
 
 def _gates(pre: Array) -> tuple[Array, Array, Array, Array]:
