@@ -203,6 +203,13 @@ def test_low_precision_matmul_backward_is_low_precision_and_close():
     for a, b in zip(g16, g32, strict=True):
         assert a.dtype == jnp.float32
         assert float(jnp.linalg.norm(a - b)) <= 2e-2 * float(jnp.linalg.norm(b))
-        assert not np.allclose(a, b, rtol=0, atol=1e-6)  # bfloat16 operands were used
-    # x @ w's backward for this loss is exact in float32: dx = r @ w^T, dw = x^T r
+    # the backward products take bfloat16 operands, the cotangent r included (plain
+    # autodiff would keep r in float32): dx = bf16(r) @ bf16(w)^T, dw = bf16(x)^T bf16(r)
+    bf = jnp.bfloat16
+    x2, r2 = x.reshape(-1, 16).astype(bf), r.reshape(-1, 8).astype(bf)
+    dw = jnp.matmul(x2.T, r2, preferred_element_type=jnp.float32)
+    dx = jnp.matmul(r.astype(bf), w.astype(bf).T, preferred_element_type=jnp.float32)
+    np.testing.assert_allclose(g16[1], dw, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(g16[0], dx, rtol=1e-5, atol=1e-5)
+    # float32: exact, dx = r @ w^T
     np.testing.assert_allclose(g32[0], r @ w.T, rtol=1e-5, atol=1e-5)

@@ -1009,7 +1009,7 @@ MOTION_NOTE = (
     "control) between one sample and the test motion, averaged over the report times "
     "(their frames 70, 90, 120, 160, 210 at 60 fps, at this frame rate, those inside the "
     "window). The ground-truth row scores the test motion itself (errors and FD are 0 by "
-    f"construction). Diverged samples: the fraction holding NaN/inf or a joint more than "
+    "construction). Diverged samples: the fraction holding NaN/inf or a joint more than "
     f"{DIVERGED_METRES:g} m from the root (a flow's inverse can blow up far from its training "
     "data); the other metrics are over the remaining samples."
 )

@@ -56,17 +56,19 @@ def _cell(gates: Array, c: Array) -> tuple[Array, Array]:
     return h, c
 
 
-def _recurrence_forward(gx, w_hh, carry, cd):
+def _recurrence_forward(gx, w_hh, carry, cd, residuals: bool = False):
+    """Outputs hs (T, ..., H) and the final carry; with ``residuals`` also the stacked cell
+    states cs and gate pre-activations pres that the hand-written backward pass needs."""
     w = w_hh if cd is None else w_hh.astype(cd)  # cast once, outside the time loop
 
     def body(state, g_x):
         h, c = state
         pre = g_x + product(h, w, cd)
         h, c = _cell(pre, c)
-        return (h, c), (h, c, pre)
+        return (h, c), ((h, c, pre) if residuals else h)
 
-    carry, (hs, cs, pres) = jax.lax.scan(body, carry, gx)
-    return hs, carry, cs, pres
+    carry, ys = jax.lax.scan(body, carry, gx)
+    return (ys, carry) if not residuals else (ys[0], carry, ys[1], ys[2])
 
 
 def recurrence(gx: Array, w_hh: Array, carry: tuple[Array, Array], compute_dtype=None):
@@ -84,8 +86,7 @@ def recurrence(gx: Array, w_hh: Array, carry: tuple[Array, Array], compute_dtype
     (``jax.grad``); use float32 for ``jax.jvp`` / ``jax.jacfwd``.
     """
     if compute_dtype is None:
-        hs, final, _, _ = _recurrence_forward(gx, w_hh, carry, None)
-        return hs, final
+        return _recurrence_forward(gx, w_hh, carry, None)
     return _recurrence_low(gx, w_hh, carry, jnp.dtype(compute_dtype).name)
 
 
@@ -98,12 +99,11 @@ def _previous(carry, hs, cs):
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3,))
 def _recurrence_low(gx, w_hh, carry, cd):
-    hs, final, _, _ = _recurrence_forward(gx, w_hh, carry, cd)
-    return hs, final
+    return _recurrence_forward(gx, w_hh, carry, cd)
 
 
 def _recurrence_low_fwd(gx, w_hh, carry, cd):
-    hs, final, cs, pres = _recurrence_forward(gx, w_hh, carry, cd)
+    hs, final, cs, pres = _recurrence_forward(gx, w_hh, carry, cd, residuals=True)
     h_prev, c_prev = _previous(carry, hs, cs)
     return (hs, final), (w_hh, h_prev, c_prev, cs, pres)
 
