@@ -21,8 +21,10 @@ from motionflows.models.baselines import (
     fit_gaussian,
     fit_linear_ar,
 )
+from motionflows.models.validation import check_sample_args
 
 NAME = "baselines"
+CAUSAL = True  # autoregressive (the Gaussian: frames independent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +42,7 @@ class Config:
 PRESETS: dict[str, Config] = {
     "paper": Config(),
     "quick": Config(fit_windows=1024),
+    "cpu": Config(),  # closed-form fits on every training window: seconds
     "gaussian": Config(model="gaussian"),
     "linear_ar_diag": Config(covariance="diag"),
 }
@@ -82,6 +85,7 @@ def evaluate(model, batch, key):
 
 def sample(model, control, key, *, temperature=1.0, seed_pose=None):
     """Poses (B, T, 63), standardised, for standardised control (B, T, 3)."""
+    control, seed_pose = check_sample_args(control, temperature, seed_pose, "baselines.sample")
     if isinstance(model, DiagonalGaussian):
         return model.sample(key, control.shape[:2], temperature=temperature)
     return model.sample(key, control, temperature=temperature, history=seed_pose)

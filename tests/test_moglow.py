@@ -83,8 +83,9 @@ def test_official_scope_round_trip_with_seed_history():
 
 
 @pytest.mark.parametrize("scope", ["official", "window"])
-def test_log_det_matches_jacobian(scope):
-    model = _model(seed=3)
+@pytest.mark.parametrize("residual", [False, True])
+def test_log_det_matches_jacobian(scope, residual):
+    model = _model(seed=3, residual=residual)
     pose, control = _data(b=1, t=6, seed=4)
     skip = TAU if scope == "official" else 0
 
@@ -172,9 +173,10 @@ def test_stream_step_equals_sample():
     assert not np.allclose(model.sample(jax.random.key(7), control), x)
 
 
-def test_window_scope_is_the_sampler_density():
+@pytest.mark.parametrize("residual", [False, True])
+def test_window_scope_is_the_sampler_density(residual):
     """log_prob(scope='window') equals base log-density of the latents the sampler used."""
-    model = _model()
+    model = _model(residual=residual)
     _, control = _data(b=2, t=6)
     z = jax.random.normal(jax.random.key(9), (2, 6, D))
     x = model.generate(z, control)
@@ -241,3 +243,26 @@ def test_clear_errors():
         MoGlow(D, C, conditioner="gru", rngs=jax.random.key(0))
     with pytest.raises(ValueError, match="scope"):
         model.log_prob(pose, control, scope="all")
+
+
+def test_residual_flows_the_change_of_pose():
+    """The residual model's latents are the plain flow's latents of x_t - x_{t-1}: same
+    parameters, same log-det, and it samples around the previous pose."""
+    plain, res = _model(), _model(residual=True)
+    pose, control = _data(b=2, t=8)
+    prev = jnp.pad(pose, ((0, 0), (1, 0), (0, 0)))[:, :-1]
+    # the plain model on the changes, with the history of the true poses
+    from motionflows.models.moglow import build_conditions as bc
+
+    targets, cond = bc(pose, control, TAU, scope="window")
+    z_ref, ld_ref = plain.flow.inverse_and_log_det(targets - prev, context=cond)
+    z, ld = res.inverse_and_log_det(pose, context=control, scope="window")
+    np.testing.assert_allclose(z, z_ref, atol=1e-5)
+    np.testing.assert_allclose(ld, ld_ref, rtol=1e-6)
+    # streaming: the residual sampler adds each new change to the previous pose
+    seed = pose[:, :TAU]
+    state = res.init_stream(2, seed)
+    x_t, _ = res.stream_step(state, control[:, 0], jax.random.key(1), temperature=0.0)
+    change, _ = plain.stream_step(plain.init_stream(2, seed), control[:, 0], jax.random.key(1),
+                                  temperature=0.0)  # fmt: skip
+    np.testing.assert_allclose(x_t, seed[:, -1] + change, atol=1e-5)

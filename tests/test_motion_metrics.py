@@ -119,10 +119,19 @@ def test_foot_sliding_contact_and_bones():
     moving = still.copy()
     moving[..., 0] = 0.05
     assert M.foot_sliding(pose, moving, fps=fps) == pytest.approx(0.05 * fps)
+    assert M.skate_ratio(pose, moving, fps=fps) == 1.0  # 1 m/s > 0.5 m/s at every step
     lifted = pose.copy()
     lifted[..., [10, 13, 22, 25]] = 0.5  # every foot joint's height 0.5 m: no contact
     assert M.foot_sliding(lifted, moving, fps=fps) == 0.0
-    assert M.contact_rate(lifted) == 0.0
+    assert M.contact_rate(lifted) == 0.0  # a floating character defines no floor of its own
+    # the old rule (5 cm above y = 0) is kept for comparison with earlier reports
+    assert M.contact_rate(pose, rule="absolute") == 1.0
+    low = pose.copy()
+    low[..., [10, 13, 22, 25]] = 0.04
+    assert M.contact_rate(low, rule="absolute") == 1.0
+    assert M.contact_rate(low, rule="absolute", contact_height=0.03) == 0.0
+    with pytest.raises(ValueError, match="unknown contact rule"):
+        M.contact_rate(pose, rule="speed")
 
     assert M.bone_length_variation(pose) == pytest.approx(0.0, abs=1e-12)
     stretched = pose.copy()
@@ -163,4 +172,71 @@ def test_jerk_frechet_diversity():
     with pytest.raises(ValueError, match="S >= 2"):
         M.diversity(real[None])
     q = M.motion_quality(pose, np.zeros((1, 20, 3)), fps=fps)
-    assert set(q) == {"foot_sliding", "contact_rate", "bone_length_std", "jerk"}
+    assert set(q) == {"foot_sliding", "skate_ratio", "contact_rate", "bone_length_std", "jerk"}
+
+
+def _planted_walk(t: int = 80, speed: float = 0.06, period: int = 20) -> tuple:
+    """Straight walking along +z with world-fixed stance feet: (pose (1, t, 63), control).
+
+    Each foot stands still for half of every ``period`` frames and swings (lifted up to
+    10 cm, moving at twice the root speed) for the other half, the feet in antiphase."""
+    body = _stand(1, 1)[0, 0].reshape(NUM_JOINTS, 3)
+    root_z = speed * np.arange(t)
+    world = np.broadcast_to(body, (t, NUM_JOINTS, 3)).copy()
+    world[:, :, 2] += root_z[:, None]
+    half = period // 2
+    for joints, offset in (((3, 4), 0), ((7, 8), half)):
+        k = np.arange(t) + offset
+        phase, cycle = k % period, k // period
+        swing = phase >= half
+        s = np.where(swing, (phase - half + 1) / half, 0.0)  # swing progress in (0, 1]
+        foot_z = speed * period * (cycle + s) - speed * offset
+        lift = 0.1 * np.sin(np.pi * s)
+        for j in joints:
+            world[:, j, 2] = foot_z + body[j, 2]
+            world[:, j, 1] = body[j, 1] + lift
+    pose = world.copy()
+    pose[:, :, 2] -= root_z[:, None]  # root frame (no turning: yaw 0)
+    control = np.zeros((1, t, 3))
+    control[..., 0] = speed
+    return pose.reshape(1, t, POSE_DIM), control
+
+
+def test_contact_rule_planted_feet_and_dragged_pose():
+    fps = 20.0
+    pose, control = _planted_walk()
+    assert M.foot_sliding(pose, control, fps=fps) == pytest.approx(0.0, abs=1e-9)
+    assert M.skate_ratio(pose, control, fps=fps) == 0.0
+    assert 0.3 <= M.contact_rate(pose) <= 0.7  # stance half of the time
+    contacts = M.foot_contacts(pose)
+    assert contacts.shape == (1, 80, 2)
+    assert not (contacts[0, :, 0] & contacts[0, :, 1]).all()  # the feet alternate
+    # the same walk raised 3 cm (a floor the data estimate finds) is still planted ...
+    raised = pose.copy()
+    raised[..., 1::3] += 0.03
+    assert M.foot_sliding(raised, control, fps=fps) == pytest.approx(0.0, abs=1e-9)
+    # ... while freezing the first pose and dragging it along the path slides at root speed
+    frozen = np.broadcast_to(pose[:, :1], pose.shape).copy()
+    assert M.foot_sliding(frozen, control, fps=fps) == pytest.approx(0.06 * fps, rel=1e-9)
+    assert M.contact_rate(frozen) > 0.0
+
+
+def test_natural_diversity_pairs_nearest_controls():
+    walk, run = np.zeros((10, 3)), np.zeros((10, 3))
+    walk[:, 0], run[:, 0] = 0.05, 0.15
+    nudge = np.array([1e-3, 0.0, 0.0])  # a slightly faster copy of each
+    control = np.stack([walk, walk + nudge, run, run + nudge])
+    base = _stand(1, 10)[0]
+    shift = np.tile([0.0, 0.0, 1.0], NUM_JOINTS)
+    pose = np.stack([base, base + 0.2 * shift, base, base + 0.4 * shift])
+    # walk pairs with walk (0.2 m apart), run with run (0.4 m): mean 0.3 m
+    assert M.natural_diversity(pose, control) == pytest.approx(0.3)
+    assert M.natural_diversity(pose, control, takes=np.array(["a", "b", "a", "b"])) == (
+        pytest.approx(0.3)
+    )
+    # neighbours come from another take: with both walks in take a, a walk pairs with a run
+    # (0 -> 2 is closest: 0 m; 1 -> 2: 0.2 m; 2 -> 1: 0.2 m; 3 -> 1: 0.2 m)
+    takes = np.array(["a", "a", "b", "b"])
+    assert M.natural_diversity(pose, control, takes=takes) == pytest.approx(0.15)
+    with pytest.raises(ValueError, match="two takes"):
+        M.natural_diversity(pose, control, takes=np.array(["a"] * 4))

@@ -1,13 +1,24 @@
-"""Rendering: GIF frame count and subsampling, compare panel, control plot, clear errors."""
+"""Rendering: GIF size, frame count and subsampling, compare panel, PNG stills, the world-space
+drawing following the integrated path, contact marks, control plot, clear errors."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from mpl_toolkits.mplot3d import proj3d
 from PIL import Image
 
+from motionflows import render
 from motionflows.data.synthetic import straight_walk
-from motionflows.render import animate, frame_grid, plot_controls, render_clip
+from motionflows.evaluation.motion import foot_contacts, integrate_root, to_global
+from motionflows.render import (
+    animate,
+    frame_grid,
+    plot_controls,
+    render_clip,
+    render_still,
+    world_joints,
+)
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +38,12 @@ def test_animate_writes_gif_with_expected_frames(clip, tmp_path):
     )
     with Image.open(out) as im:
         assert im.n_frames == len(clip)
-        assert im.size[0] < 600  # small
+        assert im.size[0] >= 1000  # two panels, sample and compare
+    single = animate(clip.pose, clip.control, tmp_path / "s.gif", still=tmp_path / "s.png")
+    with Image.open(single) as im, Image.open(tmp_path / "s.png") as still:
+        assert im.n_frames == len(clip)
+        assert im.size[0] >= 640
+        assert still.size[0] >= 1280  # dpi 200 for papers
     # 60 fps input is subsampled to <= 20 fps
     pose60 = np.repeat(clip.pose[:4], 3, axis=0)
     ctrl60 = np.repeat(clip.control[:4], 3, axis=0) / 3
@@ -39,7 +55,7 @@ def test_animate_writes_gif_with_expected_frames(clip, tmp_path):
 
 def test_render_clip_and_plots(clip, tmp_path):
     files = render_clip(clip, tmp_path)
-    assert files["gif"].exists() and files["controls"].exists()
+    assert files["gif"].exists() and files["controls"].exists() and files["still"].exists()
     with Image.open(files["controls"]) as im:
         assert im.size[0] > 200
     assert frame_grid(clip.pose, clip.control, tmp_path / "g.png", n=3).exists()
@@ -52,3 +68,51 @@ def test_bad_inputs_are_clear(clip, tmp_path):
         animate(clip.pose * 100, clip.control, tmp_path / "x.gif")
     with pytest.raises(ValueError, match=r"\(T, 3\)"):
         plot_controls(clip.control[:, :2], tmp_path / "c.png")
+    with pytest.raises(ValueError, match="out of range"):
+        render_still(clip.pose, clip.control, tmp_path / "x.png", frame=len(clip))
+
+
+def _turning(clip):
+    control = clip.control.copy()
+    control[:, 2] = 0.08  # a left turn of 0.08 rad/frame, so the path curves
+    return control
+
+
+def test_drawing_follows_the_integrated_path(clip, tmp_path):
+    control = _turning(clip).astype(np.float64)
+    pose, truth = clip.pose.astype(np.float64), clip.pose[::-1].astype(np.float64)
+    stage, n = render._stage(pose, control, truth, "t", None, 100)
+    root = np.asarray(integrate_root(control)[0])
+    world = to_global(pose, control).reshape(n, -1, 3)
+    world_truth = to_global(truth, control).reshape(n, -1, 3)
+    for t in (0, n // 2, n - 1):
+        assert stage.frame(t, 20.0).shape[1] >= 640
+        np.testing.assert_allclose(stage.drawn[0], world[t], atol=1e-9)
+        np.testing.assert_allclose(stage.drawn[1], world_truth[t], atol=1e-9)  # same path
+        ax = stage.panels[0]["ax"]
+        assert np.mean(ax.get_xlim()) == pytest.approx(root[t, 0])  # camera follows the root
+        assert np.mean(ax.get_zlim()) == pytest.approx(root[t, 2])
+    stage.frame(0, 20.0)
+    screen_x = [proj3d.proj_transform(*p, ax.get_proj())[0] for p in root[[0, n // 2, -1]]]
+    assert screen_x[0] < screen_x[1] < screen_x[2]  # walks to the right of the picture
+    np.testing.assert_allclose(world_joints(pose, control), world)
+
+
+def test_contact_marks_show_a_dragged_foot_as_a_streak(clip):
+    # a frozen pose dragged along the path: the planted foot's footprints spread over the
+    # root's whole path; a walk's footprints stay in place during each contact
+    frozen = np.repeat(clip.pose[:1], len(clip), axis=0)
+    straight = clip.control * [1.0, 0.0, 0.0]  # no turn: footprints move like the root
+    world = world_joints(frozen, straight)
+    low, prints = render._contact_marks(world)
+    contact = foot_contacts(frozen)
+    assert contact.any()
+    np.testing.assert_array_equal(np.isfinite(prints[..., 0]), contact)
+    foot = int(np.argmax(contact.sum(0)))
+    spread = np.ptp(prints[contact[:, foot], foot, 2])
+    path = np.asarray(integrate_root(straight)[0])[contact[:, foot], 2]
+    assert spread == pytest.approx(np.ptp(path), abs=1e-6) and spread > 0.3
+    assert np.all(prints[contact][:, 1] == 0.0)  # drawn on the floor
+    walk_low, walk_prints = render._contact_marks(world_joints(clip.pose, clip.control))
+    step = np.abs(np.diff(walk_prints[..., 2], axis=0))  # NaN unless in contact at both
+    assert np.nanmax(step) < 0.03 < np.ptp(np.nan_to_num(walk_prints[..., 2]))

@@ -197,6 +197,27 @@ def test_bootstrap_and_units():
         likelihood.likelihood_rows({"window": [np.nan, 1.0]}, 4, 0.0)
 
 
+def test_noam_schedule_matches_the_official_rule():
+    # paper_version: lr0 = minimum = 1e-4 is a linear warm-up, then constant 1e-4
+    paper = learning_rate_schedule(
+        TrainConfig(lr=1e-4, schedule="noam", warmup_steps=1000, min_lr_ratio=1.0)
+    )
+    assert float(paper(0)) == pytest.approx(1e-7, rel=1e-4)
+    assert float(paper(499)) == pytest.approx(5e-5, rel=1e-4)
+    assert float(paper(999)) == pytest.approx(1e-4, rel=1e-4)
+    assert float(paper(50_000)) == pytest.approx(1e-4, rel=1e-4)
+    # preferred: lr0 = 1e-3 peaks at g = 999 and decays as sqrt(W / (g + 1)) to ~1.1e-4
+    pref = learning_rate_schedule(
+        TrainConfig(lr=1e-3, schedule="noam", warmup_steps=1000, min_lr_ratio=0.1)
+    )
+    assert float(pref(999)) == pytest.approx(1e-3, rel=1e-4)
+    assert float(pref(3999)) == pytest.approx(1e-3 * 0.5, rel=1e-4)
+    assert float(pref(79_999)) == pytest.approx(1e-3 * np.sqrt(1000 / 80_000), rel=1e-4)
+    assert float(pref(10**7)) == pytest.approx(1e-4, rel=1e-4)  # the floor
+    with pytest.raises(ValueError, match="schedule"):
+        TrainConfig(schedule="linear")
+
+
 def test_optimizer_clips_values_then_norm_and_warms_up():
     tc = TrainConfig(lr=1.0, clip_value=1.0, clip_norm=1.0, warmup_steps=4, optimizer="adam")
     sched = learning_rate_schedule(tc)

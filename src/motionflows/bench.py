@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from motionflows.config import DataConfig, to_dict
-from motionflows.errors import RunError
+from motionflows.errors import MotionDataError, RunError
 
 ALL_MODELS: tuple[str, ...] = ("glow_fixed", "moglow", "vae_lstm", "gaussian", "linear_ar")
 """Model names the bench knows, in report order."""
@@ -63,7 +63,7 @@ EXPERIMENTS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 """model name -> (experiment module, config fields that select the model)."""
 
-BUDGETS: dict[str, str] = {"smoke": "quick", "quick": "quick", "full": "paper"}
+BUDGETS: dict[str, str] = {"smoke": "quick", "quick": "quick", "cpu": "cpu", "full": "paper"}
 """budget -> the experiment preset it starts from."""
 
 SMOKE_TRAIN: dict[str, Any] = {
@@ -101,6 +101,8 @@ BUDGET_SIZES: dict[str, dict[str, int]] = {
                   gif_frames=12, bootstrap=200, speed_repeats=1, prefix_points=2),
     "quick": dict(eval_windows=512, train_windows=256, motion_windows=64, diversity=16,
                   gif_frames=80, bootstrap=1000, speed_repeats=3, prefix_points=10),
+    "cpu": dict(eval_windows=100000, train_windows=512, motion_windows=256, diversity=32,
+                gif_frames=80, bootstrap=1000, speed_repeats=3, prefix_points=10),
     "full": dict(eval_windows=100000, train_windows=1024, motion_windows=256, diversity=32,
                  gif_frames=80, bootstrap=2000, speed_repeats=3, prefix_points=20),
 }  # fmt: skip
@@ -120,7 +122,8 @@ def parse_data_spec(spec: str, budget: str = "quick") -> DataConfig:
     Namco locomotion folder; the data layer's default path), ``"bandai:DIR"``, or ``"bvh:DIR"``
     (any folder of BVH files with the bandai skeleton mapping); the grammar of ``motionflows
     train --data`` (:func:`motionflows.runs.parse_data`). The ``smoke`` budget shrinks the
-    synthetic set and the window (:data:`SMOKE_DATA`).
+    synthetic set and the window (:data:`SMOKE_DATA`); the ``cpu`` budget splits Bandai data
+    by performer.
     """
     from motionflows.runs import parse_data
 
@@ -131,6 +134,9 @@ def parse_data_spec(spec: str, budget: str = "quick") -> DataConfig:
         if not Path(fields["path"]).is_dir():
             raise RunError(f"--data {spec}: {fields['path']!r} is not a folder of BVH files")
     data = DataConfig(**fields)
+    if budget == "cpu" and data.source == "bandai":
+        # the cpu budget's tables are on a performer no model saw (D2-C of the Bandai set)
+        data = dataclasses.replace(data, split_by="performer")
     if budget == "smoke":
         changes = dict(SMOKE_DATA)
         if data.source != "synthetic":
@@ -154,7 +160,8 @@ def parse_models(models: str | Sequence[str] | None) -> tuple[str, ...]:
 
 
 def load_experiment(model: str):
-    """Import the experiment module of ``model`` (``motionflows.runs.resolve_experiment``)."""
+    """The experiment module of ``model``, looked up in the ``motionflows.experiments``
+    entry points (``motionflows.runs.resolve_experiment``)."""
     from motionflows.runs import resolve_experiment
 
     module_name = EXPERIMENTS[model][0]
@@ -162,8 +169,8 @@ def load_experiment(model: str):
         return resolve_experiment(module_name.split(".", 1)[1])
     except RunError as err:
         raise RunError(
-            f"model {model!r}: cannot use {module_name} ({err}); run the bench from the "
-            "motionflows checkout, or leave this model out with --models"
+            f"model {model!r}: cannot use {module_name} ({err}); install the motionflows "
+            "checkout (`pip install -e .`), or leave this model out with --models"
         ) from err
 
 
@@ -985,6 +992,7 @@ DIVERGED_METRES = 10.0
 
 MOTION_METRICS: dict[str, dict[str, str]] = {
     "foot_sliding": {"label": "foot sliding", "unit": "m/s"},
+    "skate_ratio": {"label": "skate ratio", "unit": "fraction"},
     "contact_rate": {"label": "foot contact rate", "unit": "fraction"},
     "bone_length_std": {"label": "bone-length std", "unit": "m"},
     "jerk": {"label": "jerk (world)", "unit": "m/s^3"},
@@ -998,13 +1006,19 @@ MOTION_METRICS: dict[str, dict[str, str]] = {
 """Motion metrics in report order (all from ``motionflows.evaluation.motion``)."""
 
 MOTION_NOTE = (
-    "Foot sliding: mean horizontal world speed of a foot while its lowest joint is below 5 cm "
-    "(at two consecutive frames), with the contact rate beside it; bone-length std: the std "
+    "Foot sliding: mean horizontal world speed of a foot (mean of ankle and toe) while its "
+    "lowest joint is within 1.5 cm of the window's floor (the 5th percentile of the feet's "
+    "heights, clipped to +-5 cm) at two consecutive frames, with the contact rate beside it "
+    "(height only: a foot dragged along the floor slides); skate ratio: the fraction of those "
+    "contact steps faster than 0.5 m/s (2.5 cm/frame at 20 fps); bone-length std: the std "
     "over time of each bone's length, mean over bones; jerk: mean |d^3x/dt^3| of the joints in "
     "world coordinates (root trajectory integrated from the control); FD: Frechet distance "
     "between Gaussians fitted to real and generated poses (63-d) and 3-frame pose windows "
     "(189-d), against the same test windows; diversity: mean per-joint distance between pairs "
-    "of samples drawn for one control (the first sampled test control); pose / motion error: "
+    "of samples drawn for one control (the first sampled test control); for the ground truth, "
+    "the natural diversity: the mean per-joint distance between each real test window and "
+    "the window of another take whose control is closest (RMS over frames, channels "
+    "divided by their std); pose / motion error: "
     "Habibie et al.'s errors (root-relative joints / world joints after integrating the "
     "control) between one sample and the test motion, averaged over the report times "
     "(their frames 70, 90, 120, 160, 210 at 60 fps, at this frame rate, those inside the "
@@ -1020,6 +1034,23 @@ def diverged(samples_m) -> np.ndarray:
     :data:`DIVERGED_METRES`."""
     x = np.asarray(samples_m, np.float64).reshape(len(samples_m), -1)
     return ~np.all(np.isfinite(x) & (np.abs(x) <= DIVERGED_METRES), axis=1)
+
+
+def natural_diversity_of(windows) -> float | None:
+    """The ground-truth row's diversity: :func:`motionflows.evaluation.motion.natural_diversity`
+    of every complete window of a split, each paired with the window of another take whose
+    control is closest (None when the split has fewer than two takes)."""
+    from motionflows.evaluation import motion as mm
+
+    idx = complete_windows(windows)
+    takes = getattr(windows, "take", None)
+    takes = None if takes is None else np.asarray(takes)[idx]
+    try:
+        return mm.natural_diversity(
+            np.asarray(windows.pose)[idx], np.asarray(windows.control)[idx], takes=takes
+        )
+    except ValueError:
+        return None
 
 
 def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -> dict:
@@ -1089,6 +1120,9 @@ BUDGET_NOTES = {
     "smoke": "each experiment's `quick` preset shrunk to a CI-sized model trained for a few "
     "steps on a small synthetic set (numbers are not meaningful, only the pipeline is)",
     "quick": "each experiment's `quick` preset (minutes per model on a 2-core CPU)",
+    "cpu": "each experiment's `cpu` preset (the best motion found for at most 60 minutes of "
+    "training on 2 CPU cores; on Bandai data split by performer, so every table is on the "
+    "performer the models never saw)",
     "full": "each experiment's `paper` preset (the papers' hyper-parameters)",
 }
 
@@ -1115,6 +1149,7 @@ def run_benchmark(
     strict: bool = False,
     command: str | None = None,
     progress=print,
+    test_data: str | None = None,
 ) -> dict:
     """Train (or reuse) every model on one data configuration, score, sample, time and report.
 
@@ -1122,7 +1157,10 @@ def run_benchmark(
     ``out/motion_metrics.png`` and ``out/gifs/<model>.gif``; returns the results dict (the
     content of ``results.json``). ``performer_split`` (default: on for Bandai data) also trains
     every model on a split by performer and reports its train/test NLL. ``strict`` raises on
-    the first failure instead of recording it in the report.
+    the first failure instead of recording it in the report. ``test_data`` (``bvh:DIR``,
+    ``bandai:DIR``, a folder) replaces the test split: every table is computed on the
+    complete windows of those takes (cut at the bench's fps, window and hop, standardised
+    with the training standardiser).
     """
     from motionflows import bench_report
 
@@ -1142,6 +1180,27 @@ def run_benchmark(
     command = command or _command(data, names, budget, str(out))
     _log(progress, f"loading {data} data ({data_cfg.source}, window {data_cfg.window})")
     dataset = data_cfg.load()
+    test_info = {"spec": None, "note": "the test split of --data"}
+    if test_data:
+        from motionflows.data.takes import load_takes
+
+        takes = load_takes(
+            test_data,
+            fps=float(data_cfg.fps),
+            window=int(data_cfg.window),
+            hop=int(data_cfg.hop),
+            skeleton=data_cfg.skeleton,
+        )
+        dataset = dataset.with_test(takes.windows, test_data=str(test_data))
+        test_info = {
+            "spec": str(test_data),
+            "label": takes.label,
+            "takes": sorted(set(np.asarray(takes.windows.take).tolist())),
+            "skipped": takes.skipped,
+            "windows": len(takes.windows),
+            "note": f"every complete window of the takes of {test_data} (not the test split)",
+        }
+        _log(progress, f"test data: {len(takes.windows)} windows of {test_data}")
     if len(complete_windows(dataset.test)) < 2:
         raise RunError(
             f"--data {data}: the test split has fewer than 2 complete windows; "
@@ -1157,6 +1216,7 @@ def run_benchmark(
         "budget": budget,
         "budget_note": BUDGET_NOTES[budget],
         "data": {"spec": data, "config": to_dict(data_cfg), "info": _dataset_info(dataset)},
+        "test_data": test_info,
         "window": int(np.asarray(dataset.test.pose).shape[1]),
         "temperature": float(temperature),
         "seed": int(seed),
@@ -1174,6 +1234,7 @@ def run_benchmark(
     gt_motion = None
     with _Section(results, "ground_truth_error", strict, progress):
         gt_motion = motion_metrics(gt_m, control_m, gt_m, None, float(data_cfg.fps))
+        gt_motion["diversity"] = natural_diversity_of(dataset.test)
     results["ground_truth"] = {"motion": gt_motion}
     results["motion_metrics"] = dict(MOTION_METRICS)
     results["motion_note"] = MOTION_NOTE
@@ -1201,8 +1262,8 @@ def run_benchmark(
         entry["bench_seconds"] = time.perf_counter() - t0
         results["models"][name] = entry
 
-    if performer_split is None:
-        performer_split = data_cfg.source == "bandai"
+    if performer_split is None:  # (the cpu budget's main split already is by performer)
+        performer_split = data_cfg.source == "bandai" and data_cfg.split_by == "take"
     if performer_split:
         results["performer_split"] = _performer_split(
             names, data_cfg, budget, sizes, runs_dir, temperature, seed, retrain, strict, progress
@@ -1397,9 +1458,16 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         "--budget",
         default="quick",
         choices=list(BUDGETS),
-        help="smoke: CI-sized; quick: the quick presets; full: the paper presets",
+        help="smoke: CI-sized; quick: the quick presets; cpu: the cpu presets (<= 60 min of "
+        "training per model on 2 cores); full: the paper presets",
     )
     p.add_argument("--out", default="runs/bench", help="report folder")
+    p.add_argument(
+        "--test-data",
+        default=None,
+        help="score every table on these takes instead of the test split: bvh:DIR, "
+        "bandai:DIR or a folder (e.g. a performer the models never saw)",
+    )
     p.add_argument("--runs-dir", default="runs", help="where runs are found and trained")
     p.add_argument("--temperature", type=float, default=1.0, help="sampling temperature")
     p.add_argument("--seed", type=int, default=0)
@@ -1457,9 +1525,11 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             performer_split=ns.get("performer_split"),
             retrain=bool(ns.get("retrain", False)),
             gifs=ns.get("gifs", True) is not False,
-            command=_command(data, names, budget, out),
+            command=_command(data, names, budget, out)
+            + (f" --test-data {ns['test_data']}" if ns.get("test_data") else ""),
+            test_data=ns.get("test_data"),
         )
-    except (RunError, ValueError) as err:
+    except (RunError, ValueError, MotionDataError) as err:
         print(f"motionflows bench: error: {err}", file=sys.stderr)
         return 2
     print(f"report: {Path(out) / 'BENCHMARK.md'}")

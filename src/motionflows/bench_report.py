@@ -223,6 +223,17 @@ def write_markdown(results: dict, path: str | Path) -> str:
         "trained on this one data configuration and scored on the same test windows "
         "and controls; windows padded past the end of a short take are not scored.\n"
     )
+    test = results.get("test_data") or {}
+    if test.get("spec"):
+        skipped = test.get("skipped") or []
+        out.append(
+            f"**Test data: `{test['spec']}`** instead of the test split: every table below is "
+            f"computed on the {test.get('windows', '?')} complete windows of its "
+            f"{len(test.get('takes') or [])} takes (cut at the same fps, window and hop, "
+            "standardised with the training standardiser)"
+            + (f"; {len(skipped)} take(s) shorter than one window skipped" if skipped else "")
+            + ".\n"
+        )
     out.append("## Likelihood\n")
     out.append(
         "Negative log-likelihood per frame (lower is better), mean over windows with a "

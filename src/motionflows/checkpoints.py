@@ -10,7 +10,9 @@ counters, best validation NLL). A checkpoint never holds NaN or inf: :meth:`save
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +63,39 @@ def unflatten(template: Any, flat: dict[str, Any], what: str = "state") -> Any:
     return jax.tree_util.tree_unflatten(treedef, out)
 
 
+class CheckpointReadError(ValueError):
+    """No complete checkpoint could be read (each damaged step is named)."""
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint could not be written (a full disk, no permission); one line for people."""
+
+
+def _os_error(err: BaseException) -> OSError | None:
+    """The ``OSError`` behind ``err`` (through ``__cause__`` / ``__context__``), if any."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, OSError):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
+
+
+@contextlib.contextmanager
+def _quiet_orbax():
+    """Keep orbax/absl from logging its own tracebacks while we turn errors into one line."""
+    loggers = [logging.getLogger(n) for n in ("absl", "orbax")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, levels, strict=True):
+            lg.setLevel(level)
+
+
 def all_finite(flat: dict[str, np.ndarray]) -> bool:
     """Whether every floating-point array is finite."""
     return all(np.all(np.isfinite(v)) for v in flat.values() if np.issubdtype(v.dtype, np.inexact))
@@ -99,15 +134,32 @@ class Checkpointer:
                     f"refusing to checkpoint step {step}: the {name} hold NaN or inf"
                 )
         mgr = self.managers[which]
-        if step in mgr.all_steps():
-            mgr.delete(step)
-        mgr.save(
-            step,
-            args=ocp.args.Composite(
-                state=ocp.args.StandardSave(flat), meta=ocp.args.JsonSave(dict(meta))
-            ),
-        )
-        mgr.wait_until_finished()
+        try:
+            with _quiet_orbax():
+                if step in mgr.all_steps():
+                    mgr.delete(step)
+                mgr.save(
+                    step,
+                    args=ocp.args.Composite(
+                        state=ocp.args.StandardSave(flat), meta=ocp.args.JsonSave(dict(meta))
+                    ),
+                )
+                mgr.wait_until_finished()
+        except OSError as err:
+            raise CheckpointWriteError(
+                f"cannot write checkpoint step {step} to {self.directory / which}: "
+                f"{err.strerror or err}; free disk space (or fix the folder's permissions) "
+                "and continue with --resume from the last complete checkpoint"
+            ) from None
+        except Exception as err:  # orbax wraps I/O errors (e.g. a full disk) in its own types
+            cause = _os_error(err)
+            if cause is None:
+                raise
+            raise CheckpointWriteError(
+                f"cannot write checkpoint step {step} to {self.directory / which}: "
+                f"{cause.strerror or cause}; free disk space (or fix the folder's "
+                "permissions) and continue with --resume from the last complete checkpoint"
+            ) from None
 
     def restore(
         self, templates: dict[str, Any], *, which: str = "latest", step: int | None = None
@@ -115,13 +167,37 @@ class Checkpointer:
         """Restore ``(state, meta)``; ``templates`` give each state entry's pytree shape."""
         ocp = self._ocp
         mgr = self.managers[which]
-        step = mgr.latest_step() if step is None else step
-        if step is None:
+        # an explicit step must load; otherwise the newest complete checkpoint is used
+        candidates = sorted(mgr.all_steps(), reverse=True) if step is None else [step]
+        if not candidates:
             raise FileNotFoundError(f"no {which} checkpoint in {self.directory}")
-        got = mgr.restore(
-            step,
-            args=ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore()),
-        )
+        args = ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
+        got, damaged = None, []
+        for candidate in candidates:
+            try:
+                with _quiet_orbax():
+                    got = mgr.restore(candidate, args=args)
+                break
+            except Exception as err:  # a truncated or damaged step directory
+                if step is not None:
+                    raise CheckpointReadError(
+                        f"checkpoint step {candidate} in {self.directory / which} cannot be "
+                        f"read ({type(err).__name__}); it is damaged or incomplete"
+                    ) from None
+                damaged.append(candidate)
+        if got is None:
+            raise CheckpointReadError(
+                f"no readable {which} checkpoint in {self.directory}: steps {damaged} are "
+                "damaged or incomplete; train the run again (without --resume, into a new "
+                "--run-name)"
+            )
+        if damaged:
+            print(
+                f"warning: {which} checkpoint step(s) {damaged} in {self.directory / which} "
+                f"are damaged or incomplete; using step {candidate}, the newest complete one",
+                file=sys.stderr,
+            )
+        self.restored_step = candidate
         flat = got["state"]
         state = {
             name: unflatten(template, flat.get(name, {}), name)

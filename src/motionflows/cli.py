@@ -1,10 +1,11 @@
-"""The ``motionflows`` command: train, eval, sample, render, runs, data, bench.
+"""The ``motionflows`` command: train, eval, sample, render, play, runs, data, bench.
 
     motionflows train moglow --preset quick --data synthetic --steps 2000 --set train.lr=1e-3
     motionflows train moglow --run-name quick-1 --resume
     motionflows eval runs/moglow/quick-1 --split test
     motionflows sample runs/moglow/quick-1 --control walk-turn-run --seconds 8 --num 4
     motionflows render take.bvh --out renders/        (or an .npz with pose / control)
+    motionflows play runs/moglow/quick-1 --port 8000   (then open the printed URL)
     motionflows runs
     motionflows data download bandai --dest data/bandai
     motionflows bench --data synthetic --budget quick --out runs/bench
@@ -16,8 +17,10 @@ line on stderr and exit with code 2.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +35,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings reach people as one line each, without the source line that raised them."""
+    print(f"warning: {message}", file=file or sys.stderr)
+
+
+def _folder(path: str | Path, flag: str) -> Path:
+    """``path`` as an output folder; a path that is an existing file is refused."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists() and not p.is_dir():
+            raise RunError(
+                f"{flag} {path}: {p} is a file, not a folder; give a folder path (it is "
+                "created if missing)"
+            )
+        if p.exists():
+            break
+    return path
+
+
 # ---------------------------------------------------------------------------- commands
 
 
@@ -44,69 +66,137 @@ def cmd_train(args) -> int:
 def cmd_eval(args) -> int:
     from motionflows import runs, training
 
-    runs.check_run_dir(args.run_dir)
+    run_dir = runs.resolve_run_dir(args.run_dir)
+    if args.data is None and (args.label or args.skeleton):
+        raise RunError("--label and --skeleton go with --data (other takes to score)")
     training.evaluate_run(
-        args.run_dir, args.split, checkpoint=args.checkpoint, batch_size=args.batch_size
+        run_dir,
+        args.split,
+        data=args.data,
+        label=args.label,
+        skeleton=args.skeleton or "bandai",
+        checkpoint=args.checkpoint,
+        batch_size=args.batch_size,
     )
-    print(f"wrote {Path(args.run_dir) / f'eval_{args.split}.json'}", file=sys.stderr)
+    written = sorted(run_dir.glob("eval_*.json"), key=lambda p: p.stat().st_mtime)
+    print(f"wrote {written[-1]}", file=sys.stderr)
     return 0
+
+
+def _sample_controls(args, fps: float) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
+    """(name, control (T, 3) data units, ground-truth pose (T, 63) metres or None) for
+    ``--control``: a preset or .npy (no ground truth), a .bvh take or a folder of takes."""
+    from motionflows.data.controls import load_control
+
+    text = str(args.control)
+    path = Path(text)
+    if path.suffix.lower() == ".bvh" or path.is_dir():
+        from motionflows.data.takes import read_takes
+
+        clips, _ = read_takes(text, fps=fps, skeleton=args.skeleton)
+        out = []
+        for clip in clips:
+            n = len(clip) if args.seconds is None else max(1, int(round(args.seconds * fps)))
+            pose, control = clip.pose[:n], clip.control[:n]
+            if len(control) < n:  # hold the last frame: the take is shorter than --seconds
+                pad = n - len(control)
+                control = np.concatenate([control, np.zeros((pad, 3), np.float32)])
+                pose = np.concatenate([pose, np.repeat(pose[-1:], pad, 0)])
+            out.append((clip.name, control, pose))
+        return out
+    seconds = 8.0 if args.seconds is None else args.seconds
+    return [(path.stem, load_control(text, seconds, fps), None)]
 
 
 def cmd_sample(args) -> int:
     from motionflows import runs, training
-    from motionflows.data.controls import load_control
+    from motionflows.pretrained.model import INFO_FILE
 
-    run_dir = runs.check_run_dir(args.run_dir)
-    if args.num < 1 or args.seconds <= 0:
+    run_dir = runs.resolve_run_dir(args.run_dir)
+    if args.num < 1 or (args.seconds is not None and args.seconds <= 0):
         raise RunError("--num must be >= 1 and --seconds > 0")
     module, config, model, _ = training.load_run(
         run_dir, checkpoint=args.checkpoint, load_data=False
     )
     std = training.load_standardizer(run_dir)
     fps = float(config.data.fps)
-    control = load_control(args.control, args.seconds, fps)  # (T, 3) m/frame, rad/frame
-    temperature = float(args.temperature)
-    pose = training.draw_samples(
-        module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
-    )
-    out = Path(args.out) if args.out else run_dir / "samples"
+    temperature = args.temperature
+    if temperature is None:  # the temperature the model was validated at, else 1
+        info = run_dir / INFO_FILE
+        temperature = json.loads(info.read_text()).get("temperature", 1.0) if info.is_file() else 1.0
+    temperature = float(temperature)
+    if not (np.isfinite(temperature) and temperature >= 0):
+        raise RunError(
+            f"--temperature must be a finite number >= 0 (1 = the model's own spread, 0 = its "
+            f"mode), got {temperature:g}"
+        )
+    if args.out:
+        out = _folder(args.out, "--out")
+    elif str(args.run_dir).startswith("pretrained:"):  # never write into the package
+        out = Path("samples") / str(args.run_dir).split(":", 1)[1]
+    else:
+        out = run_dir / "samples"
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"{Path(str(args.control)).stem}_T{temperature:g}_seed{args.seed}"
-    npz = out / f"{stem}.npz"
-    np.savez(
-        npz,
-        pose=pose,
-        control=control,
-        fps=fps,
-        temperature=temperature,
-        seed=args.seed,
-        experiment=module.NAME,
-        run_dir=str(run_dir),
-    )
-    print(f"wrote {npz}: pose {pose.shape} metres, control {control.shape}", file=sys.stderr)
-    if not args.no_gif:
+    for name, control, truth in _sample_controls(args, fps):
+        pose = training.draw_samples(
+            module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
+        )
+        stem = f"{name}_T{temperature:g}_seed{args.seed}"
+        npz = out / f"{stem}.npz"
+        extra = {} if truth is None else {"ground_truth": truth}
+        np.savez(
+            npz,
+            pose=pose,
+            control=control,
+            fps=fps,
+            temperature=temperature,
+            seed=args.seed,
+            experiment=module.NAME,
+            run_dir=str(run_dir),
+            **extra,
+        )
+        print(f"wrote {npz}: pose {pose.shape} metres, control {control.shape}", file=sys.stderr)
+        if args.no_gif:
+            continue
         from motionflows import render
 
         for i in range(args.num):
+            title = f"{module.NAME} {name} #{i}" + ("" if truth is None else " | ground truth")
             gif = render.animate(
-                pose[i],
-                control,
-                out / f"{stem}_{i}.gif",
-                fps=fps,
-                title=f"{module.NAME} {args.control} #{i}",
+                pose[i], control, out / f"{stem}_{i}.gif", fps=fps, title=title, compare=truth
             )
             print(f"wrote {gif}", file=sys.stderr)
-        render.plot_controls(control, out / f"{stem}_control.png", fps, title=str(args.control))
+        render.plot_controls(control, out / f"{stem}_control.png", fps, title=name)
+    return 0
+
+
+def _render_run(args) -> int:
+    """``render RUN`` / ``render pretrained:NAME``: animate one sample of a preset control."""
+    from motionflows import render, runs
+    from motionflows.data.controls import load_control
+    from motionflows.pretrained import PretrainedModel
+
+    run_dir = runs.resolve_run_dir(args.path)
+    model = PretrainedModel.from_run(run_dir)
+    seconds = model.window / model.fps if model.fixed_length else 8.0
+    control = load_control("walk-turn-run", seconds, model.fps)
+    pose = model.sample(control[None], seed=0)[0]
+    out = _folder(args.out, "--out")
+    stem = f"{run_dir.name}_walk-turn-run"
+    gif = render.animate(pose, control, out / f"{stem}.gif", fps=model.fps, title=stem)
+    print(f"wrote {gif}", file=sys.stderr)
     return 0
 
 
 def cmd_render(args) -> int:
     from motionflows import render
 
+    if str(args.path).startswith("pretrained:") or (Path(args.path) / "config.json").is_file():
+        return _render_run(args)
     path = Path(args.path)
     if not path.is_file():
         raise RunError(f"{path} not found (give a .bvh file or an .npz with pose and control)")
-    out = Path(args.out)
+    out = _folder(args.out, "--out")
     if path.suffix.lower() == ".bvh":
         from motionflows.data import clip_from_bvh
 
@@ -136,6 +226,35 @@ def cmd_render(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from motionflows import runs
+    from motionflows.export import export_run
+
+    run_dir = runs.resolve_run_dir(args.run_dir)
+    out = export_run(
+        run_dir,
+        _folder(args.out, "--out"),
+        checkpoint=args.checkpoint,
+        temperature=args.temperature,
+        overwrite=args.overwrite,
+    )
+    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+    print(f"wrote {out} ({size / 1e6:.1f} MB, no optimiser state)", file=sys.stderr)
+    return 0
+
+
+def cmd_play(args) -> int:
+    try:
+        from motionflows.play import play
+        from motionflows.play.server import check_installed
+
+        check_installed()
+    except ImportError as err:
+        raise RunError(str(err)) from None
+    play(args.run_dir, host=args.host, port=args.port, temperature=args.temperature)
+    return 0
+
+
 def cmd_runs(args) -> int:
     from motionflows import runs
 
@@ -155,11 +274,13 @@ def cmd_data(args) -> int:
     from motionflows.data.download import BASE_URL, download_bandai
 
     base_url = args.url or os.environ.get("MOTIONFLOWS_BANDAI_URL") or BASE_URL
-    download_bandai(args.dest, base_url=base_url)
+    download_bandai(_folder(args.dest, "--dest"), base_url=base_url)
     return 0
 
 
 def cmd_bench(args) -> int:
+    if getattr(args, "out", None):
+        _folder(args.out, "--out")
     try:
         from motionflows import bench
     except ImportError:
@@ -187,6 +308,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="likelihood table of a run (writes eval_<split>.json)")
     p.add_argument("run_dir")
     p.add_argument("--split", default="test", choices=["train", "val", "test"])
+    p.add_argument(
+        "--data",
+        default=None,
+        help="score other takes instead of a split: bvh:DIR, bandai:DIR, a folder or a .bvh "
+        "(the run's standardiser, window and fps; writes eval_<label>.json)",
+    )
+    p.add_argument("--label", default=None, help="name of the --data output (default: folder)")
+    p.add_argument("--skeleton", default=None, help="skeleton mapping of --data BVH files")
     p.add_argument("--checkpoint", default="best", choices=["best", "latest"])
     p.add_argument("--batch-size", type=int, default=None)
     p.set_defaults(func=cmd_eval)
@@ -197,23 +326,59 @@ def build_parser() -> argparse.ArgumentParser:
         "--control",
         default="walk-turn-run",
         help="a control preset (stand, walk, run, walk-turn-left, walk-then-run, "
-        "walk-turn-run, figure-eight, ...) or a (T, 3) .npy file",
+        "walk-turn-run, figure-eight, ...), a (T, 3) .npy file, or a .bvh take or folder of "
+        "takes (its own control; the GIF shows the take beside the sample)",
     )
-    p.add_argument("--seconds", type=float, default=8.0)
+    p.add_argument(
+        "--seconds", type=float, default=None, help="length (default: 8 s, or the take's own)"
+    )
+    p.add_argument("--skeleton", default="bandai", help="skeleton mapping of --control BVH")
     p.add_argument("--num", type=int, default=1, help="number of samples")
-    p.add_argument("--temperature", type=float, default=1.0)
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=None,
+        help="sampling temperature (default: the validated one of a pretrained model, else 1)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="output folder (default: <run>/samples)")
     p.add_argument("--checkpoint", default="best", choices=["best", "latest"])
     p.add_argument("--no-gif", action="store_true", help="only write the npz")
     p.set_defaults(func=cmd_sample)
 
-    p = sub.add_parser("render", help="GIF + control plot of a .bvh or .npz (pose, control)")
+    p = sub.add_parser(
+        "render",
+        help="GIF + control plot of a .bvh or .npz (pose, control), or a sample of a run "
+        "directory / pretrained:NAME",
+    )
     p.add_argument("path")
     p.add_argument("--out", default="renders", help="output folder")
     p.add_argument("--fps", type=float, default=20.0)
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of a BVH file")
     p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("export", help="a shippable copy of a run (parameters, no optimiser)")
+    p.add_argument("run_dir")
+    p.add_argument("--out", required=True, help="folder to write (must be new or empty)")
+    p.add_argument("--checkpoint", default="best", choices=["best", "latest"])
+    p.add_argument(
+        "--temperature", type=float, default=None, help="validated sampling temperature to store"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an existing export")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("play", help="steer a MoGlow character in real time from a web page")
+    p.add_argument("run_dir", help="a run directory of a causal model, or pretrained:NAME")
+    p.add_argument("--port", type=int, default=0, help="port to listen on (default: a free one)")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=None,
+        help="initial sampling temperature (default: the validated one of a pretrained "
+        "model, else 1; the page has a slider)",
+    )
+    p.set_defaults(func=cmd_play)
 
     p = sub.add_parser("runs", help="table of runs with their best validation NLL")
     p.add_argument("--root", default="runs")
@@ -256,11 +421,14 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
+    shown, warnings.showwarning = warnings.showwarning, _one_line_warning
     try:
         return report_errors(args.func, args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown
 
 
 if __name__ == "__main__":

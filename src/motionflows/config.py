@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import types
 import typing
 from typing import Any
@@ -32,6 +33,15 @@ class DataConfig:
     synthetic_seconds: float = 12.0
     seed: int = 0
 
+    def __post_init__(self):
+        _check_fields(self, DATA_LIMITS)
+        if self.source not in ("synthetic", "bandai", "bvh"):
+            raise ValueError(
+                f"data.source must be 'synthetic', 'bandai' or 'bvh', got {self.source!r}"
+            )
+        if self.split_by not in ("take", "performer"):
+            raise ValueError(f"data.split_by must be 'take' or 'performer', got {self.split_by!r}")
+
     def load(self):
         """Build the dataset this config describes (cached on disk by the data layer)."""
         from motionflows.data import load_dataset
@@ -52,6 +62,10 @@ class DataConfig:
         )
 
 
+SCHEDULES: tuple[str, ...] = ("constant", "cosine", "noam")
+"""Learning-rate schedules of :class:`TrainConfig` (see ``training.learning_rate_schedule``)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """The shared optimisation and bookkeeping settings of ``motionflows.training``."""
@@ -60,7 +74,7 @@ class TrainConfig:
     batch_size: int = 32
     lr: float = 1e-3
     warmup_steps: int = 0
-    schedule: str = "constant"  # "constant" or "cosine" (after warm-up)
+    schedule: str = "constant"  # "constant", "cosine" (after warm-up) or "noam" (MoGlow's)
     clip_value: float | None = None  # element-wise gradient clipping, applied first
     clip_norm: float | None = None  # then global-norm clipping
     weight_decay: float = 0.0
@@ -75,8 +89,70 @@ class TrainConfig:
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8
-    min_lr_ratio: float = 0.0  # cosine schedule: final lr = lr * min_lr_ratio
+    min_lr_ratio: float = 0.0  # cosine: final lr = lr * min_lr_ratio; noam: the floor
     val_batch_size: int | None = None  # None = batch_size
+
+    def __post_init__(self):
+        _check_fields(self, TRAIN_LIMITS)
+        if self.schedule not in SCHEDULES:
+            raise ValueError(
+                f"train.schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}"
+            )
+        if self.optimizer not in ("adam", "adamw"):
+            raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
+
+
+# field -> (lowest, highest, lowest allowed?, highest allowed?); None values are left to the
+# field's "X | None" type. Every number must also be finite.
+_Limit = tuple[float, float, bool, bool]
+INF = math.inf
+DATA_LIMITS: dict[str, _Limit] = {
+    "fps": (0.0, 1000.0, False, True),
+    "window": (2, INF, True, True),
+    "hop": (1, INF, True, True),
+    "synthetic_clips": (1, INF, True, True),
+    "synthetic_seconds": (0.0, 3600.0, False, True),
+}
+TRAIN_LIMITS: dict[str, _Limit] = {
+    "steps": (0, INF, True, True),
+    "batch_size": (1, INF, True, True),
+    "lr": (0.0, 1e3, False, True),
+    "warmup_steps": (0, INF, True, True),
+    "clip_value": (0.0, INF, False, False),
+    "clip_norm": (0.0, INF, False, False),
+    "weight_decay": (0.0, 1e3, True, True),
+    "eval_every": (1, INF, True, True),
+    "eval_batches": (1, INF, True, True),
+    "log_every": (1, INF, True, True),
+    "checkpoint_every": (1, INF, True, True),
+    "keep_checkpoints": (1, INF, True, True),
+    "max_nonfinite": (1, INF, True, True),
+    "b1": (0.0, 1.0, True, False),
+    "b2": (0.0, 1.0, True, False),
+    "eps": (0.0, 1.0, False, True),
+    "min_lr_ratio": (0.0, 1.0, True, True),
+    "val_batch_size": (1, INF, True, True),
+}
+
+
+def _check_fields(config: Any, limits: dict[str, _Limit]) -> None:
+    """Raise ``ValueError`` naming the first field of ``config`` outside its limits."""
+    section = {"DataConfig": "data", "TrainConfig": "train"}.get(type(config).__name__, "")
+    for name, (lo, hi, lo_ok, hi_ok) in limits.items():
+        value = getattr(config, name)
+        if value is None:
+            continue
+        path = f"{section}.{name}" if section else name
+        integer = isinstance(lo, int)
+        kind = "an integer" if integer else "a finite number"
+        if isinstance(value, bool) or not isinstance(value, int if integer else int | float):
+            raise ValueError(f"{path} must be {kind}, got {value!r}")
+        above = value > lo if not lo_ok else value >= lo
+        below = value < hi if not hi_ok else value <= hi
+        if not (math.isfinite(value) and above and below):
+            low = f">= {lo:g}" if lo_ok else f"> {lo:g}"
+            high = "" if math.isinf(hi) else (f" and <= {hi:g}" if hi_ok else f" and < {hi:g}")
+            raise ValueError(f"{path} must be {kind} {low}{high}, got {value!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,8 +187,11 @@ def to_dict(config: Any) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(config)))
 
 
-def from_dict(cls: type, values: dict) -> Any:
-    """Rebuild ``cls`` from :func:`to_dict` output. Unknown keys raise ``ValueError``."""
+def from_dict(cls: type, values: dict, _prefix: str = "") -> Any:
+    """Rebuild ``cls`` from :func:`to_dict` output. Unknown keys and values of the wrong
+    type raise ``ValueError`` naming the field."""
+    if not isinstance(values, dict):
+        raise ValueError(f"{_prefix or cls.__name__} must be a JSON object, got {values!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(values) - names
@@ -122,13 +201,44 @@ def from_dict(cls: type, values: dict) -> Any:
         )
     kwargs = {}
     for name, value in values.items():
-        kind = hints[name]
-        if dataclasses.is_dataclass(kind) and isinstance(value, dict):
-            value = from_dict(kind, value)
-        elif isinstance(value, list):
-            value = tuple(value)
-        kwargs[name] = value
+        kind, path = hints[name], f"{_prefix}{name}"
+        if dataclasses.is_dataclass(kind):
+            kwargs[name] = from_dict(kind, value, path + ".")
+        else:
+            kwargs[name] = _typed(value, kind, path)
     return cls(**kwargs)
+
+
+def _typed(value: Any, kind: Any, path: str) -> Any:
+    """``value`` (from JSON) checked against the field type ``kind``; lists become tuples."""
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        non_none = [a for a in args if a is not type(None)]
+        return _typed(value, non_none[0], path) if len(non_none) == 1 else value
+    ok = True
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind is float:
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif kind is str:
+        ok = isinstance(value, str)
+    elif origin in (tuple, list):
+        if not isinstance(value, list | tuple):
+            ok = False
+        else:
+            inner = args[0] if len(args) == 2 and args[1] is Ellipsis else None
+            value = tuple(_typed(v, inner, path) if inner else v for v in value)
+    elif isinstance(value, list):
+        value = tuple(value)
+    if not ok:
+        name = getattr(kind, "__name__", str(kind))
+        raise ValueError(f"config field {path} must be {name}, got {value!r}")
+    return value
 
 
 def _field_paths(cls: type, prefix: str = "") -> dict[str, tuple[str, type]]:
@@ -231,9 +341,47 @@ def save_config(path: Any, *, experiment: str, preset: str | None, config: Any) 
     Path(path).write_text(json.dumps(payload, indent=2) + "\n")
 
 
-def load_config(path: Any, cls: type) -> tuple[str, str | None, Any]:
-    """Read a ``config.json`` written by :func:`save_config` -> (experiment, preset, config)."""
+def read_config_json(path: Any) -> dict:
+    """The payload of a run's ``config.json``, checked for its ``experiment`` and ``config``
+    keys; a missing, unreadable or damaged file raises ``RunError`` naming it."""
     from pathlib import Path
 
-    payload = json.loads(Path(path).read_text())
-    return payload["experiment"], payload.get("preset"), from_dict(cls, payload["config"])
+    from motionflows.errors import RunError
+
+    path = Path(path)
+    fix = "restore it from a backup or train the run again"
+    try:
+        payload = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RunError(f"{path}: not found; {fix}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise RunError(f"{path}: cannot read it ({err}); {fix}") from None
+    except json.JSONDecodeError as err:
+        raise RunError(
+            f"{path}:{err.lineno}: not valid JSON ({err.msg}; the file may be truncated); {fix}"
+        ) from None
+    if not isinstance(payload, dict):
+        raise RunError(f"{path}: expected a JSON object with 'experiment' and 'config'; {fix}")
+    for key, kind in (("experiment", str), ("config", dict)):
+        if not isinstance(payload.get(key), kind):
+            what = "is missing" if key not in payload else f"is {payload[key]!r}"
+            raise RunError(f"{path}: the field {key!r} {what}; {fix}")
+    return payload
+
+
+def config_from_json(path: Any, cls: type, payload: dict | None = None) -> Any:
+    """``cls`` rebuilt from the ``config`` of a ``config.json``; a bad field raises
+    ``RunError`` naming the file and the field."""
+    from motionflows.errors import RunError
+
+    payload = read_config_json(path) if payload is None else payload
+    try:
+        return from_dict(cls, payload["config"])
+    except (ValueError, TypeError) as err:
+        raise RunError(f"{path}: {err}; fix the field or train the run again") from None
+
+
+def load_config(path: Any, cls: type) -> tuple[str, str | None, Any]:
+    """Read a ``config.json`` written by :func:`save_config` -> (experiment, preset, config)."""
+    payload = read_config_json(path)
+    return payload["experiment"], payload.get("preset"), config_from_json(path, cls, payload)

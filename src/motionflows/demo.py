@@ -1,14 +1,15 @@
-"""``make demo``: train the best available model at ``quick`` on synthetic data, then show it.
+"""``make demo``: the shipped MoGlow walks, turns and runs; then a model trains from scratch.
 
-Picks the first experiment that imports: ``moglow``, then ``glow_fixed``, then the
-closed-form ``baselines`` (linear-Gaussian AR). Trains its ``quick`` preset on the
-embedded synthetic data (progress bar with ETA on stderr), prints the test-split
-likelihood table (nats/frame in metres and bits/frame standardised), samples the
-``walk-turn-run`` control and writes the sample (npz, metres) and its GIF under
-``<run>/samples/``.
+1. Samples the ``walk-turn-run`` control (8 s) from the pretrained ``moglow-bandai`` model
+   (:mod:`motionflows.pretrained`: seconds, no training) and writes the sample (npz,
+   metres), its GIF and a PNG still under ``<runs-dir>/demo/``.
+2. Trains an experiment's ``quick`` preset (MoGlow by default) on the embedded synthetic
+   data (progress bar with ETA on stderr), prints the test-split likelihood table
+   (nats/frame in metres and bits/frame standardised), and samples and animates the same
+   control under ``<run>/samples/``.
 
     python -m motionflows.demo [--experiment NAME] [--steps N] [--seconds S] [--runs-dir DIR]
-                               [--set key=value ...]
+                               [--no-pretrained] [--no-train] [--set key=value ...]
 """
 
 from __future__ import annotations
@@ -21,131 +22,119 @@ from pathlib import Path
 
 import numpy as np
 
-CANDIDATES = ("moglow", "glow_fixed", "baselines")
+PRETRAINED = "moglow-bandai"
 
 
-def choose_experiment(names=CANDIDATES, *, verbose: bool = True):
-    """The first experiment module in ``names`` that imports and has a ``quick`` preset."""
-    from motionflows.runs import resolve_experiment
+def _write(pose, control, fps: float, out: Path, stem: str, title: str, gif: bool) -> None:
+    """npz (metres) + GIF + PNG still of one sample."""
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez(out / f"{stem}.npz", pose=pose, control=control, fps=fps)
+    print(f"== sample: {out / f'{stem}.npz'} (pose {pose.shape} metres)", file=sys.stderr)
+    if gif:
+        from motionflows import render
 
-    for name in names:
-        try:
-            module = resolve_experiment(name)
-        except Exception as err:  # a model still being written must not break the demo
-            if verbose:
-                print(f"demo: skipping {name} ({type(err).__name__}: {err})", file=sys.stderr)
-            continue
-        if "quick" in module.PRESETS:
-            return module
-    raise RuntimeError(f"none of the experiments {names} is available")
+        path = render.animate(pose, control, out / f"{stem}.gif", fps=fps, title=title)
+        print(f"== GIF: {path}", file=sys.stderr)
 
 
-def _sample_length(config, seconds: float) -> int:
-    return max(1, int(round(seconds * float(config.data.fps))))
+def pretrained_demo(control_name: str, seconds: float, out: Path, *, gif: bool = True) -> bool:
+    """Sample and animate the shipped MoGlow; False (with a note) when it is not installed."""
+    from motionflows import pretrained
+    from motionflows.data.controls import load_control
 
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m motionflows.demo", description=__doc__)
-    parser.add_argument("--experiment", default=None, help=f"one of {', '.join(CANDIDATES)}")
-    parser.add_argument("--steps", type=int, default=None, help="override the quick steps")
-    parser.add_argument("--seconds", type=float, default=8.0, help="length of the sample")
-    parser.add_argument("--control", default="walk-turn-run")
-    parser.add_argument("--runs-dir", default="runs")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        nargs="+",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config overrides, as for `motionflows train`",
+    if PRETRAINED not in pretrained.available():
+        print(f"demo: no pretrained {PRETRAINED} in this install; skipping", file=sys.stderr)
+        return False
+    t0 = time.perf_counter()
+    model = pretrained.load(PRETRAINED)
+    control = load_control(control_name, seconds, model.fps)
+    pose = model.sample(control[None], seed=0)[0]
+    print(
+        f"== pretrained {PRETRAINED} ({model!r}): {control_name}, {seconds:g} s sampled in "
+        f"{time.perf_counter() - t0:.1f} s",
+        file=sys.stderr,
     )
-    parser.add_argument("--no-gif", action="store_true")
-    args = parser.parse_args(argv)
+    title = f"pretrained {PRETRAINED}: {control_name} (T={model.temperature:g})"
+    _write(pose, control, model.fps, out, f"{PRETRAINED}_{control_name}", title, gif)
+    return True
 
+
+def train_demo(args) -> int:
+    """Train the quick preset on synthetic data, score it, sample and animate the control."""
     from motionflows import training
     from motionflows.config import apply_overrides
     from motionflows.data.controls import load_control
-    from motionflows.errors import RunError
+    from motionflows.runs import resolve_experiment
 
-    t0 = time.perf_counter()
-    try:
-        module = choose_experiment((args.experiment,) if args.experiment else CANDIDATES)
-    except RuntimeError as err:
-        print(f"demo: {err}", file=sys.stderr)
-        return 2
+    module = resolve_experiment(args.experiment)
     config = module.PRESETS["quick"]
     config = dataclasses.replace(config, data=dataclasses.replace(config.data, source="synthetic"))
     if args.steps is not None:
         config = dataclasses.replace(
             config, train=dataclasses.replace(config.train, steps=args.steps)
         )
-    try:
-        config = apply_overrides(config, args.overrides)
-    except ValueError as err:
-        print(f"demo: {err}", file=sys.stderr)
-        return 2
+    config = apply_overrides(config, args.overrides)
     run_dir = Path(args.runs_dir) / module.NAME / f"demo-{time.strftime('%Y%m%d-%H%M%S')}"
     print(
-        f"== motionflows demo: {module.NAME} (preset quick, {config.train.steps} steps) on "
-        f"synthetic data -> {run_dir}",
+        f"\n== training {module.NAME} (preset quick, {config.train.steps} steps) on synthetic "
+        f"data -> {run_dir}",
         file=sys.stderr,
     )
-    print("== loading the synthetic data (generated once, then cached)", file=sys.stderr)
     dataset = config.data.load()
     result = training.train(module, config, run_dir=run_dir, preset="quick", dataset=dataset)
     if result.status not in ("finished", "fitted"):
         print(f"demo: training stopped ({result.status}); see {run_dir}", file=sys.stderr)
         return 1
-
     print("\n== test-split likelihood", file=sys.stderr)
     training.evaluate_run(run_dir, "test", dataset=dataset)
-
     _, _, model, _ = training.load_run(run_dir, dataset=dataset)
     fps = float(config.data.fps)
     control = load_control(args.control, args.seconds, fps)
-    try:
-        pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
-    except (ValueError, TypeError) as err:  # e.g. a fixed-length model: one window only
-        n = int(config.data.window)
-        print(
-            f"demo: sampling {len(control)} frames failed ({err}); sampling one "
-            f"{n}-frame window instead",
-            file=sys.stderr,
-        )
-        control = load_control(args.control, n / fps, fps)
-        pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
-    except RunError as err:
-        print(f"demo: {err}", file=sys.stderr)
-        return 1
-    out = run_dir / "samples"
-    out.mkdir(parents=True, exist_ok=True)
-    npz = out / f"demo_{args.control}.npz"
-    np.savez(npz, pose=pose, control=control, fps=fps)
-    print(f"\n== sample: {npz} (pose {pose.shape[1:]} metres)", file=sys.stderr)
-    if not args.no_gif:
-        from motionflows import render
-
-        print("== rendering the GIF", file=sys.stderr)
-        gif = render.animate(
-            pose[0],
-            control,
-            out / f"demo_{args.control}.gif",
-            fps=fps,
-            title=f"{module.NAME}: {args.control}",
-        )
-        render.plot_controls(
-            control, out / f"demo_{args.control}_control.png", fps, title=args.control
-        )
-        print(f"== GIF: {gif}", file=sys.stderr)
-    minutes = (time.perf_counter() - t0) / 60
+    pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
+    title = f"{module.NAME} quick: {args.control}"
+    _write(pose[0], control, fps, run_dir / "samples", f"demo_{args.control}", title, args.gif)
     print(
-        f"\n== done in {minutes:.1f} min. Next:\n"
-        f"   motionflows sample {run_dir} --control figure-eight --seconds 10 --num 3\n"
-        f"   motionflows eval {run_dir} --split test\n"
-        f"   motionflows runs",
+        f"\n== next:\n   motionflows sample {run_dir} --control figure-eight --seconds 10 --num 3\n"
+        f"   motionflows sample pretrained:{PRETRAINED} --control ../shared/data/"
+        "bandai_locomotion_dev/dataset-2_walk-turn-left_normal_001.bvh\n"
+        f"   motionflows eval {run_dir} --split test\n   motionflows runs",
         file=sys.stderr,
     )
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m motionflows.demo", description=__doc__)
+    parser.add_argument("--experiment", default="moglow", help="the experiment to train")
+    parser.add_argument("--steps", type=int, default=None, help="override the quick steps")
+    parser.add_argument("--seconds", type=float, default=8.0, help="length of the samples")
+    parser.add_argument("--control", default="walk-turn-run")
+    parser.add_argument("--runs-dir", default="runs")
+    parser.add_argument("--no-pretrained", dest="pretrained", action="store_false")
+    parser.add_argument("--no-train", dest="train", action="store_false")
+    parser.add_argument("--no-gif", dest="gif", action="store_false")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config overrides of the trained model, as for `motionflows train`",
+    )
+    args = parser.parse_args(argv)
+    from motionflows.errors import MotionflowsError
+
+    t0 = time.perf_counter()
+    try:
+        if args.pretrained:
+            out = Path(args.runs_dir) / "demo"
+            pretrained_demo(args.control, args.seconds, out, gif=args.gif)
+        code = train_demo(args) if args.train else 0
+    except (MotionflowsError, ValueError) as err:
+        print(f"demo: {err}", file=sys.stderr)
+        return 2
+    print(f"\n== done in {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

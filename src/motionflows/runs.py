@@ -7,11 +7,11 @@ A run lives in ``runs/<experiment>/<run-name>/`` with ``config.json``,
 
 from __future__ import annotations
 
-import importlib
 import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -20,47 +20,51 @@ from motionflows.errors import RunError
 REQUIRED = ("NAME", "Config", "PRESETS", "build", "loss", "evaluate", "SCOPES", "sample")
 
 
-def experiment_search_paths() -> list[Path]:
-    """Where ``experiments/`` is looked for: the repository root (if it holds one) and cwd."""
-    import motionflows
+ENTRY_POINT_GROUP = "motionflows.experiments"
+"""Entry-point group through which experiment modules register (``pyproject.toml``)."""
 
-    paths = []
-    root = Path(motionflows.__file__).resolve().parents[2]
-    if (root / "experiments").is_dir():
-        paths.append(root)
-    paths.append(Path.cwd())
-    return paths
+
+def _entry_points() -> dict:
+    from importlib.metadata import entry_points
+
+    return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
 
 
 def available_experiments() -> list[str]:
-    names = set()
-    for base in experiment_search_paths():
-        for f in (base / "experiments").glob("*.py"):
-            if not f.name.startswith("_"):
-                names.add(f.stem)
-    return sorted(names)
+    """Names of the experiments registered in the ``motionflows.experiments`` entry points."""
+    return sorted(_entry_points())
+
+
+def _unknown(name: Any) -> RunError:
+    names = available_experiments()
+    hint = (
+        f"available: {', '.join(names)}"
+        if names
+        else "none is registered: install motionflows with `pip install -e .` from its checkout"
+    )
+    return RunError(f"unknown experiment {name!r}; {hint}")
 
 
 def resolve_experiment(name: str):
-    """Import ``experiments.<name>`` (a module object passes through) and check its protocol."""
+    """The experiment module registered as ``name`` (a module object passes through).
+
+    Experiments are found through the ``motionflows.experiments`` entry points only, never
+    by importing from a path or the working directory; a module already imported as
+    ``experiments.<name>`` (tests, notebooks) is used as it is.
+    """
     if not isinstance(name, str):
         return name
-    if not name.isidentifier():
-        raise RunError(f"unknown experiment {name!r}; available: {available_experiments()}")
-    for base in reversed(experiment_search_paths()):
-        if str(base) not in sys.path:
-            sys.path.insert(0, str(base))
-    try:
-        module = importlib.import_module(f"experiments.{name}")
-    except ModuleNotFoundError as err:
-        if err.name in (f"experiments.{name}", "experiments"):
-            raise RunError(
-                f"unknown experiment {name!r}; available: {available_experiments()}"
-            ) from None
-        raise
+    module = sys.modules.get(f"experiments.{name}") if name.isidentifier() else None
+    if module is None:
+        ep = _entry_points().get(name)
+        if ep is None:
+            raise _unknown(name)
+        module = ep.load()
     missing = [a for a in REQUIRED if not hasattr(module, a)]
     if missing:
-        raise RunError(f"experiments.{name} lacks {missing} (see docs/ARCHITECTURE.md)")
+        raise RunError(
+            f"experiment {name!r} ({module.__name__}) lacks {missing} (see docs/ARCHITECTURE.md)"
+        )
     return module
 
 
@@ -85,19 +89,60 @@ def check_run_dir(run_dir: str | Path) -> Path:
     return run_dir
 
 
+def resolve_run_dir(text: str | Path) -> Path:
+    """A run directory from a path, or from ``pretrained:NAME`` (a model shipped with the
+    package, :func:`motionflows.pretrained.path`); raises ``RunError`` when it is neither."""
+    text = str(text)
+    if text.startswith("pretrained:"):
+        from motionflows import pretrained
+
+        return pretrained.path(text.split(":", 1)[1])
+    return check_run_dir(text)
+
+
+def _metrics_row(line: str) -> dict | None:
+    """One ``metrics.jsonl`` line as a row, or None if it is damaged (not a JSON object, or
+    a ``step`` that is not a non-negative integer)."""
+    try:
+        row = json.loads(line)
+    except (json.JSONDecodeError, RecursionError):
+        return None
+    if not isinstance(row, dict):
+        return None
+    step = row.get("step", 0)
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        return None
+    return row
+
+
 def read_metrics(run_dir: str | Path) -> list[dict]:
+    """The rows of ``run_dir/metrics.jsonl``; damaged lines (a crash, a broken disk) are
+    skipped with one warning naming the file, their count and the first line number."""
     path = Path(run_dir) / "metrics.jsonl"
     if not path.is_file():
         return []
-    rows = []
-    for line in path.read_text().splitlines():
+    rows, bad = [], []
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    for number, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if line:
-            try:
-                rows.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line cut short by a crash
+            row = _metrics_row(line)
+            if row is None:
+                bad.append(number)
+            else:
+                rows.append(row)
+    if bad:
+        warnings.warn(
+            f"{path}: skipped {len(bad)} damaged line(s) (first: line {bad[0]}); the other "
+            "rows are used",
+            MetricsWarning,
+            stacklevel=2,
+        )
     return rows
+
+
+class MetricsWarning(UserWarning):
+    """A ``metrics.jsonl`` line could not be read and was skipped."""
 
 
 def truncate_metrics(run_dir: str | Path, step: int) -> None:
@@ -113,7 +158,7 @@ def append_metrics(run_dir: str | Path, row: dict) -> None:
 
 
 def best_val(rows: list[dict], key: str = "val_nll") -> tuple[float | None, int | None]:
-    vals = [(r[key], r["step"]) for r in rows if isinstance(r.get(key), int | float)]
+    vals = [(r[key], r.get("step", 0)) for r in rows if isinstance(r.get(key), int | float)]
     if not vals:
         return None, None
     return min(vals)
@@ -122,8 +167,15 @@ def best_val(rows: list[dict], key: str = "val_nll") -> tuple[float | None, int 
 def plot_losses(run_dir: str | Path, rows: list[dict] | None = None) -> Path | None:
     """Write ``loss.png``: training loss and validation NLL (nats/frame, metres) by step."""
     rows = read_metrics(run_dir) if rows is None else rows
-    train = [(r["step"], r["loss"]) for r in rows if "loss" in r and r["loss"] is not None]
-    val = [(r["step"], r["val_nll"]) for r in rows if r.get("val_nll") is not None]
+
+    def points(key):
+        return [
+            (r.get("step", 0), r[key])
+            for r in rows
+            if isinstance(r.get(key), int | float) and not isinstance(r[key], bool)
+        ]
+
+    train, val = points("loss"), points("val_nll")
     if not train and not val:
         return None
     import matplotlib
@@ -221,19 +273,30 @@ def _bvh_error(text: str):
 
 
 def list_runs(root: str | Path = "runs") -> list[dict]:
-    """One dict per run under ``root``: experiment, run, preset, step, best val NLL, dir."""
+    """One dict per run under ``root``: experiment, run, preset, step, best val NLL, dir.
+
+    A run whose ``config.json`` cannot be read gets ``{"dir", "run", "broken": why}``
+    instead, so one damaged run never hides the others."""
+    from motionflows.config import read_config_json
+
     out = []
     root = Path(root)
     for cfg in sorted(root.glob("*/*/config.json")):
         run_dir = cfg.parent
         try:
-            payload = json.loads(cfg.read_text())
-        except (OSError, json.JSONDecodeError):
+            payload = read_config_json(cfg)
+        except RunError as err:
+            out.append({"dir": str(run_dir), "run": run_dir.name, "broken": str(err)})
             continue
-        rows = read_metrics(run_dir)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", MetricsWarning)
+            rows = read_metrics(run_dir)
+        damaged = [str(w.message) for w in caught if issubclass(w.category, MetricsWarning)]
         val, val_step = best_val(rows)
         steps = [r["step"] for r in rows if "step" in r]
         status = next((r["status"] for r in reversed(rows) if "status" in r), "running?")
+        if damaged:
+            status = f"{status} (metrics.jsonl has damaged lines, skipped)"
         out.append(
             {
                 "experiment": payload.get("experiment", run_dir.parent.name),
@@ -255,7 +318,10 @@ def format_runs(runs: list[dict]) -> str:
         f"{'best val NLL':>13} {'at':>7}  status"
     )
     lines = [head, "-" * len(head)]
+    broken = [r for r in runs if "broken" in r]
     for r in runs:
+        if "broken" in r:
+            continue
         val = f"{r['best_val_nll']:.3f}" if r["best_val_nll"] is not None else "-"
         at = str(r["best_step"]) if r["best_step"] is not None else "-"
         lines.append(
@@ -266,4 +332,5 @@ def format_runs(runs: list[dict]) -> str:
         "best val NLL: nats/frame in metres on validation windows ('window' scope, else the "
         "model's first scope, e.g. the VAE-LSTM's ELBO bound)"
     )
+    lines += [f"broken run {r['dir']}: {r['broken']}" for r in broken]
     return "\n".join(lines)

@@ -52,7 +52,7 @@ import optax
 from flax import nnx
 
 from motionflows import config as cfg
-from motionflows import runs
+from motionflows import distributed, runs
 from motionflows.checkpoints import Checkpointer
 from motionflows.errors import RunError
 from motionflows.evaluation import likelihood
@@ -81,11 +81,34 @@ warnings.filterwarnings("ignore", message="Some donated buffers were not usable"
 # ---------------------------------------------------------------------------- optimiser
 
 
+def noam_schedule(lr: float, warmup: int, minimum: float) -> optax.Schedule:
+    """The "noam" rule of the official MoGlow / glow-pytorch code, g the step from 0::
+
+        lr(g) = lr * sqrt(W) * min((g + 1) * W^-1.5, (g + 1)^-0.5),  floored at ``minimum``
+                once g > W
+
+    a linear warm-up to ``lr`` at g = W - 1, then decay as sqrt(W / (g + 1)). With
+    ``minimum == lr`` it is a warm-up followed by a constant ``lr``."""
+    w = float(max(1, warmup))
+
+    def schedule(step):
+        g = jnp.asarray(step, jnp.float32) + 1.0
+        value = lr * jnp.sqrt(w) * jnp.minimum(g * w**-1.5, g**-0.5)
+        return jnp.where(g - 1.0 > w, jnp.maximum(value, minimum), value)
+
+    return schedule
+
+
 def learning_rate_schedule(train: cfg.TrainConfig) -> optax.Schedule:
     """Linear warm-up from 0 over ``warmup_steps``, then constant or cosine decay to
-    ``lr * min_lr_ratio`` at ``steps``."""
-    if train.schedule not in ("constant", "cosine"):
-        raise ValueError(f"train.schedule must be 'constant' or 'cosine', got {train.schedule!r}")
+    ``lr * min_lr_ratio`` at ``steps``; or ``"noam"`` (:func:`noam_schedule`, its own
+    warm-up over ``warmup_steps``, floor ``lr * min_lr_ratio``)."""
+    if train.schedule not in cfg.SCHEDULES:
+        raise ValueError(
+            f"train.schedule must be one of {', '.join(cfg.SCHEDULES)}, got {train.schedule!r}"
+        )
+    if train.schedule == "noam":
+        return noam_schedule(train.lr, train.warmup_steps, train.lr * train.min_lr_ratio)
     if train.schedule == "constant":
         after = optax.constant_schedule(train.lr)
     else:
@@ -206,8 +229,11 @@ def _keys(seed: int) -> dict[str, jax.Array]:
     return dict(zip(names, jax.random.split(base, len(names)), strict=True))
 
 
-def _main_key(lls: dict, scopes: dict | None = None) -> str:
-    """The score behind ``val_nll``: "window", else the first of the module's SCOPES."""
+def _main_key(lls: dict, scopes: dict | None = None, preferred: str | None = None) -> str:
+    """The score behind ``val_nll`` (and the best checkpoint): the module's
+    ``VALIDATION_SCOPE`` when it declares one, else "window", else its first SCOPE."""
+    if preferred in lls:
+        return preferred
     if "window" in lls:
         return "window"
     return next((k for k in (scopes or {}) if k in lls), next(iter(lls)))
@@ -238,8 +264,8 @@ def validate(
     windows: Any = None,
 ) -> dict:
     """Validation NLL on :func:`validation_windows`: ``val_nll`` (nats/frame, metres) and
-    ``val_bits`` (bits/frame, standardised) of the ``window`` scope (or the first scope),
-    plus ``val_<scope>_nll`` for every scope."""
+    ``val_bits`` (bits/frame, standardised) of the module's ``VALIDATION_SCOPE`` (else the
+    ``window`` scope, else the first scope), plus ``val_<scope>_nll`` for every scope."""
     tc = config.train
     pose, control = windows if windows is not None else validation_windows(config, dataset, split)
     lls = likelihood.evaluate_windows(
@@ -257,7 +283,9 @@ def validate(
     for k, ll in lls.items():
         n = likelihood.scored_frames(getattr(module, "SCOPES", {}), k, window, config)
         out[f"val_{k}_nll"] = float(np.mean(likelihood.nats_per_frame_metres(ll, n, ldpf)))
-        if k == _main_key(lls, getattr(module, "SCOPES", {})):
+        if k == _main_key(
+            lls, getattr(module, "SCOPES", {}), getattr(module, "VALIDATION_SCOPE", None)
+        ):
             out["val_nll"] = out[f"val_{k}_nll"]
             out["val_bits"] = float(np.mean(likelihood.bits_per_frame_standardized(ll, n)))
     return out
@@ -350,10 +378,10 @@ def train(
         )
     if resume and not (run_dir / "config.json").is_file():
         raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
-    for sub in ("checkpoints", "samples"):
-        (run_dir / sub).mkdir(parents=True, exist_ok=True)
     dataset = config.data.load() if dataset is None else dataset
-    if _primary():
+    if _primary():  # the other processes of a multi-process run write nothing here
+        for sub in ("checkpoints", "samples"):
+            (run_dir / sub).mkdir(parents=True, exist_ok=True)
         cfg.save_config(
             run_dir / "config.json", experiment=module.NAME, preset=preset, config=config
         )
@@ -517,6 +545,7 @@ def _train_loop(
                 batch = dataset.batch("train", tc.batch_size, seed=tc.seed, index=step)
                 frames = int(np.prod(np.shape(batch["pose"])[:2]))
                 batch = shard_batch(batch, mesh)
+                distributed.trace_local_rows(step, batch)
                 key = jax.random.fold_in(keys["train"], step)
                 params, opt_state, guard, out = step_fn(params, rest, opt_state, guard, batch, key)
                 completed = done = step + 1
@@ -629,8 +658,29 @@ class _Standardizer:
 
 
 def load_standardizer(run_dir: str | Path):
-    """The run's standardiser from ``standardizer.json`` (no dataset needed)."""
-    d = json.loads((Path(run_dir) / "standardizer.json").read_text())
+    """The run's standardiser from ``standardizer.json`` (no dataset needed); a missing or
+    damaged file raises ``RunError`` naming it."""
+    path = Path(run_dir) / "standardizer.json"
+    fix = "copy it back from a backup, or train the run again (it is written at the start)"
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RunError(f"{path} is missing: sampling needs the run's standardiser; {fix}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise RunError(f"{path} cannot be read ({err}); {fix}") from None
+    keys = ("pose_mean", "pose_std", "control_mean", "control_std")
+    if not isinstance(d, dict) or any(k not in d for k in keys):
+        raise RunError(f"{path} lacks one of the fields {list(keys)}; {fix}")
+    for k in keys:
+        try:
+            arr = np.asarray(d[k], np.float64)
+        except (TypeError, ValueError):
+            arr = np.zeros(0)
+        size = np.size(d[f"{k.split('_')[0]}_mean"])
+        if arr.ndim != 1 or arr.size == 0 or arr.size != size or not np.all(np.isfinite(arr)):
+            raise RunError(f"{path}: field {k!r} must be a list of finite numbers; {fix}")
+        if k.endswith("_std") and not np.all(arr > 0):
+            raise RunError(f"{path}: field {k!r} must be positive everywhere; {fix}")
     try:
         from motionflows.data import Standardizer
 
@@ -648,9 +698,9 @@ def load_run(
     ``dataset``: reuse an already loaded dataset; ``load_data=False`` returns None.
     """
     run_dir = runs.check_run_dir(run_dir)
-    payload = json.loads((run_dir / "config.json").read_text())
+    payload = cfg.read_config_json(run_dir / "config.json")
     module = runs.resolve_experiment(payload["experiment"])
-    config = cfg.from_dict(module.Config, payload["config"])
+    config = cfg.config_from_json(run_dir / "config.json", module.Config, payload)
     model = module.build(config, key=_keys(config.train.seed)["build"])
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     ckpt = Checkpointer(run_dir / "checkpoints", keep=config.train.keep_checkpoints)
@@ -715,17 +765,54 @@ def evaluate_run(
     run_dir: str | Path,
     split: str = "test",
     *,
+    data: str | None = None,
+    label: str | None = None,
+    skeleton: str = "bandai",
     checkpoint: str = "best",
     dataset: Any = None,
     batch_size: int | None = None,
     print_table: bool = True,
 ) -> list[dict]:
-    """Score every window of ``split``; write ``eval_<split>.json`` and print the table."""
-    module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
-    bs = batch_size or config.train.val_batch_size or config.train.batch_size
-    pose, control = _split_windows(
-        dataset, split, batch_size=bs, fallback_batches=config.train.eval_batches
-    )
+    """Score every complete window of ``split``, or of the takes of ``data``; write
+    ``eval_<split>.json`` (``eval_<label>.json``) and print the table.
+
+    ``data``: other takes (``"bvh:DIR"``, ``"bandai:DIR"``, a folder or one ``.bvh``; see
+    :mod:`motionflows.data.takes`), cut into the run's windows at the run's fps and
+    standardised with the run's own standardiser (never refitted); ``label`` names the
+    output (default: the folder's name) and ``skeleton`` maps the BVH joints. Takes too short
+    for one window are listed as skipped in the JSON and on stderr.
+    """
+    extra: dict[str, Any] = {}
+    if data is None:
+        module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
+        bs = batch_size or config.train.val_batch_size or config.train.batch_size
+        pose, control = _split_windows(
+            dataset, split, batch_size=bs, fallback_batches=config.train.eval_batches
+        )
+        ldpf = float(dataset.standardizer.log_det_per_frame)
+        name, what = split, f"{split} split"
+    else:
+        from motionflows.data.takes import load_takes
+
+        module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
+        bs = batch_size or config.train.val_batch_size or config.train.batch_size
+        std = load_standardizer(run_dir)
+        takes = load_takes(
+            data,
+            fps=float(config.data.fps),
+            window=int(config.data.window),
+            hop=int(config.data.hop),
+            skeleton=skeleton,
+        )
+        pose = np.asarray(std.normalize_pose(takes.windows.pose), np.float32)
+        control = np.asarray(std.normalize_control(takes.windows.control), np.float32)
+        ldpf = float(std.log_det_per_frame)
+        name = _file_label(label or takes.label)
+        used = sorted(set(np.asarray(takes.windows.take).tolist()))
+        what = f"{len(used)} takes of {data}"
+        extra = {"data": str(data), "takes": used, "skipped": takes.skipped}
+        for item in takes.skipped:
+            print(f"skipped take {item}: shorter than one window", file=sys.stderr)
     lls = likelihood.evaluate_windows(
         module,
         model,
@@ -738,26 +825,32 @@ def evaluate_run(
     window = pose.shape[1]
     scopes = getattr(module, "SCOPES", {})
     frames = {k: likelihood.scored_frames(scopes, k, window, config) for k in lls}
-    ldpf = float(dataset.standardizer.log_det_per_frame)
     rows = likelihood.likelihood_rows(lls, frames, ldpf, scopes=scopes)
     likelihood.write_eval(
-        Path(run_dir) / f"eval_{split}.json",
+        Path(run_dir) / f"eval_{name}.json",
         rows,
-        split=split,
+        split=split if data is None else name,
         experiment=module.NAME,
         window=window,
         checkpoint=checkpoint,
         log_det_per_frame=ldpf,
+        **extra,
     )
     if print_table:
         print(
             likelihood.format_table(
                 rows,
-                title=f"{module.NAME} — {split} split, {pose.shape[0]} windows of {window} "
+                title=f"{module.NAME} — {what}, {pose.shape[0]} windows of {window} "
                 f"frames ({Path(run_dir)})",
             )
         )
     return rows
+
+
+def _file_label(text: str) -> str:
+    """``text`` made safe as part of a file name (letters, digits, ``-``, ``_``, ``.``)."""
+    out = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in str(text)).strip("._")
+    return out or "data"
 
 
 def draw_samples(
@@ -860,9 +953,8 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
 
 def run_train(module: Any, args: argparse.Namespace) -> int:
     """Train from parsed flags, then print the test table; the exit code."""
-    from motionflows.sharding import initialize_distributed
-
-    if initialize_distributed():  # multi-host: MOTIONFLOWS_COORDINATOR etc. (see sharding)
+    distributed.configure_cpu_threads()  # before JAX starts its CPU backend
+    if distributed.initialize():  # MOTIONFLOWS_COORDINATOR etc. (see motionflows.distributed)
         print(
             f"process {jax.process_index()} of {jax.process_count()}, "
             f"{jax.device_count()} devices in all",
@@ -870,6 +962,7 @@ def run_train(module: Any, args: argparse.Namespace) -> int:
         )
     module = runs.resolve_experiment(module)
     config, preset, run_dir = configure(module, args)
+    distributed.check_same_config(module.NAME, config)
     print(f"run directory: {run_dir}", file=sys.stderr)
     dataset = config.data.load()
     result = train(
@@ -891,15 +984,31 @@ def run_train(module: Any, args: argparse.Namespace) -> int:
 
 def report_errors(fn, *args) -> int:
     """Run ``fn(*args)``; user errors become one line on stderr and exit code 2."""
+    from motionflows.checkpoints import CheckpointWriteError
     from motionflows.errors import MotionDataError
 
     try:
         return fn(*args)
-    except (RunError, MotionDataError, FileNotFoundError) as err:
+    except (RunError, MotionDataError, FileNotFoundError, CheckpointWriteError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except ValueError as err:  # bad config values and shapes, with the fix in the message
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # a full disk, a file where a folder should be, no permission
+        import errno
+
+        where = f" ({err.filename})" if err.filename else ""
+        fix = {
+            errno.ENOSPC: "free disk space and run the command again (--resume continues)",
+            errno.EEXIST: "a file is in the way: choose another path",
+            errno.ENOTDIR: "a file is in the way: choose another path",
+            errno.EACCES: "no permission: choose a folder you can write to",
+        }.get(err.errno, "check the path")
+        print(f"error: {err.strerror or err}{where}; {fix}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print("error: out of memory; use smaller inputs or a smaller batch", file=sys.stderr)
         return 2
 
 

@@ -14,6 +14,7 @@ standardiser, batch indices), :mod:`.datasets` (sources, splits, cache), :mod:`.
 
 from motionflows.data.augment import mirror_clip, reverse_clip
 from motionflows.data.bvh import BVH, forward_kinematics, parse_bvh, read_bvh
+from motionflows.data.controls import load_control
 from motionflows.data.datasets import SOURCES, MotionDataset, load_clips, load_dataset
 from motionflows.data.features import (
     Clip,
@@ -41,6 +42,7 @@ __all__ = [
     "forward_kinematics",
     "integrate_control",
     "load_clips",
+    "load_control",
     "load_dataset",
     "mirror_clip",
     "parse_bvh",

@@ -34,6 +34,16 @@ _POS = ("Xposition", "Yposition", "Zposition")
 _ROT = ("Xrotation", "Yrotation", "Zrotation")
 VALID_CHANNELS = _POS + _ROT
 
+MIN_FRAME_TIME_S = 1e-4
+"""Shortest accepted ``Frame Time`` (10 000 fps)."""
+MAX_FRAME_TIME_S = 10.0
+"""Longest accepted ``Frame Time`` (one frame per 10 s)."""
+MAX_ROTATION_DEG = 1e5
+"""Largest accepted |rotation channel| in degrees (~280 turns; unwrapped angles fit)."""
+MAX_LENGTH_VALUE = 1e9
+"""Largest accepted |offset| or |position channel| in file units, before any unit scale
+(the 1 km limit on positions in metres is applied after conversion, in ``features``)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class BVH:
@@ -150,6 +160,13 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
             raise _err(f"expected a number but found {tok!r}", path, ln) from None
         if not math.isfinite(value):
             raise _err(f"non-finite value {tok!r} in the hierarchy", path, ln)
+        if abs(value) > MAX_LENGTH_VALUE:
+            raise _err(
+                f"offset {tok} is beyond the limit of {MAX_LENGTH_VALUE:g} file units; "
+                "check the file's units",
+                path,
+                ln,
+            )
         return value
 
     def parse_offset() -> np.ndarray:
@@ -219,7 +236,12 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
             f"unexpected {tok!r} after the root joint (only one ROOT is supported)", path, ln
         )
     if len(set(names)) != len(names):
-        raise _err("joint names are not unique", path, tokens[0][1])
+        seen: set[str] = set()
+        dup = next(n for n in names if n in seen or seen.add(n))
+        line = [ln for k, (tok, ln) in enumerate(tokens) if tok == dup and k > 0][-1]
+        raise _err(
+            f"joint name {dup!r} is used by more than one joint; rename one of them", path, line
+        )
 
     # ---- MOTION ----------------------------------------------------------------------
     i = motion_line + 1
@@ -250,6 +272,14 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
         raise _err(f"Frame Time {ft_txt!r} is not a number", path, ft_ln) from None
     if not (math.isfinite(frame_time) and frame_time > 0):
         raise _err(f"Frame Time must be a positive number, got {ft_txt!r}", path, ft_ln)
+    if not MIN_FRAME_TIME_S <= frame_time <= MAX_FRAME_TIME_S:
+        raise _err(
+            f"Frame Time {ft_txt} s is outside the accepted range {MIN_FRAME_TIME_S:g} .. "
+            f"{MAX_FRAME_TIME_S:g} s ({1 / MAX_FRAME_TIME_S:g} .. {1 / MIN_FRAME_TIME_S:g} "
+            "fps); fix the header (Frame Time is seconds per frame, e.g. 0.0333333 for 30 fps)",
+            path,
+            ft_ln,
+        )
 
     n_chan = sum(len(c) for c in channels)
     data_lines = []
@@ -299,6 +329,24 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
     if not finite.all():
         k = int(np.flatnonzero(~finite.all(axis=1))[0])
         raise _err(f"non-finite value in frame {k}", path, line_numbers[k])
+    flat = [(j, ch) for j, chans in enumerate(channels) for ch in chans]
+    for limit, kind, unit in (
+        (MAX_ROTATION_DEG, _ROT, "degrees"),
+        (MAX_LENGTH_VALUE, _POS, "file units"),
+    ):
+        cols = [c for c, (_, ch) in enumerate(flat) if ch in kind]
+        if not cols:
+            continue
+        over = np.abs(motion[:, cols]) > limit
+        if over.any():
+            k, c = (int(v[0]) for v in np.nonzero(over))
+            j, ch = flat[cols[c]]
+            raise _err(
+                f"{ch} of joint {names[j]!r} is {motion[k, cols[c]]:g} {unit} in frame {k}, "
+                f"beyond the limit of {limit:g}; the file is damaged or uses other units",
+                path,
+                line_numbers[k],
+            )
 
     starts = np.cumsum([0] + [len(c) for c in channels])[:-1]
     return BVH(

@@ -108,12 +108,22 @@ def validate_control(control, *, path: str | None = None) -> np.ndarray:
 
 
 def load_control(
-    path_or_name: str | os.PathLike, seconds: float | None = None, fps: float = DEFAULT_FPS
+    path_or_name: str | os.PathLike,
+    seconds: float | None = None,
+    fps: float = DEFAULT_FPS,
+    *,
+    skeleton="bandai",
 ) -> np.ndarray:
-    """A preset name (needs ``seconds``) or a ``.npy`` file holding a (T, 3) array.
+    """A (T, 3) control in data units (m/frame, m/frame, rad/frame) from a preset name
+    (needs ``seconds``), a ``.npy`` file holding a (T, 3) array, or a ``.bvh`` take (its own
+    control track at ``fps``, exactly as :func:`motionflows.data.clip_from_bvh` computes it;
+    ``skeleton`` maps its joints).
 
     With a file and ``seconds`` given, the control is cut or repeated-last-frame padded to
     ``round(seconds * fps)`` frames.
+
+    >>> load_control("walk", seconds=2.0).shape
+    (40, 3)
     """
     text = str(path_or_name)
     if canonical_preset(text) is not None:
@@ -121,16 +131,22 @@ def load_control(
             raise ValueError(f"preset {text!r} needs seconds=")
         return preset(text, seconds, fps)
     p = Path(text)
-    if p.suffix != ".npy":
+    if p.suffix.lower() not in (".npy", ".bvh"):
         raise ValueError(
-            f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a .npy file"
+            f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a .npy or .bvh "
+            "file"
         )
     if not p.exists():
         raise ValueError(f"control file {p} not found")
-    try:
-        arr = np.load(p, allow_pickle=False)
-    except Exception as err:
-        raise ValueError(f"cannot read control file {p}: {err}") from None
+    if p.suffix.lower() == ".bvh":
+        from motionflows.data.features import clip_from_bvh
+
+        arr = clip_from_bvh(p, fps=fps, skeleton=skeleton).control
+    else:
+        try:
+            arr = np.load(p, allow_pickle=False)
+        except Exception as err:
+            raise ValueError(f"cannot read control file {p}: {err}") from None
     arr = validate_control(arr, path=str(p))
     if seconds is not None:
         n = max(1, int(round(seconds * fps)))

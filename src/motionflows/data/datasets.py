@@ -52,6 +52,7 @@ SOURCES = ("synthetic", "bandai", "bvh")
 SPLITS = ("train", "val", "test")
 PIPELINE_VERSION = "1"
 BANDAI_DEFAULT = Path("..") / "shared" / "data" / "bandai_locomotion_dev"
+BANDAI_EXTRA = Path("..") / "shared" / "data" / "bandai_locomotion_extra"
 MANIFEST = Path(__file__).with_name("bandai_manifest.csv")
 _DOWNLOAD_HINT = (
     "get the data with `motionflows data download bandai --dest DIR` (needs internet) and "
@@ -65,17 +66,47 @@ def bandai_manifest(path: str | os.PathLike | None = None) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+def default_bandai_dirs() -> list[Path]:
+    """The default Bandai folders: ``$MOTIONFLOWS_BANDAI_DIR`` (one folder, or several
+    separated by ``os.pathsep``) if set, else the dev folder
+    ``../shared/data/bandai_locomotion_dev`` and, when it is there too, the extra takes
+    ``../shared/data/bandai_locomotion_extra`` (relative to the working directory or to the
+    repository). Empty when none exists."""
+    env = os.environ.get("MOTIONFLOWS_BANDAI_DIR")
+    if env:
+        return [Path(p) for p in env.split(os.pathsep) if p and Path(p).is_dir()]
+    for base in (Path.cwd(), Path(__file__).resolve().parents[3]):
+        if (base / BANDAI_DEFAULT).is_dir():
+            return [base / BANDAI_DEFAULT] + [
+                base / d for d in (BANDAI_EXTRA,) if (base / d).is_dir()
+            ]
+    return []
+
+
 def default_bandai_dir() -> Path | None:
-    """The first existing default Bandai folder, or None."""
-    candidates = []
-    if os.environ.get("MOTIONFLOWS_BANDAI_DIR"):
-        candidates.append(Path(os.environ["MOTIONFLOWS_BANDAI_DIR"]))
-    candidates.append(Path.cwd() / BANDAI_DEFAULT)
-    candidates.append(Path(__file__).resolve().parents[3] / BANDAI_DEFAULT)
-    for c in candidates:
-        if c.is_dir():
-            return c
-    return None
+    """The first default Bandai folder (see :func:`default_bandai_dirs`), or None."""
+    dirs = default_bandai_dirs()
+    return dirs[0] if dirs else None
+
+
+def git_blob_sha1(data: bytes) -> str:
+    """The git blob id of ``data``: sha1 of ``b"blob <len>\\0" + data``."""
+    h = hashlib.sha1(b"blob %d\0" % len(data))
+    h.update(data)
+    return h.hexdigest()
+
+
+def check_checksums(files: list[Path], manifest: dict[str, dict]) -> None:
+    """Raise ``MotionDataError`` naming the first file whose git blob SHA-1 differs from its
+    manifest row (files without a row, or a row without a checksum, are not checked)."""
+    for f in files:
+        want = (manifest.get(f.name) or {}).get("git_blob_sha1")
+        if want and git_blob_sha1(f.read_bytes()) != want:
+            raise MotionDataError(
+                "does not match its manifest checksum (the file is damaged or was edited); "
+                "fetch it again with `motionflows data download bandai --dest DIR`",
+                path=str(f),
+            )
 
 
 def cache_dir(path: str | os.PathLike | None = None) -> Path:
@@ -158,7 +189,31 @@ def _folder_manifest(folder: Path) -> dict[str, dict]:
 
 
 def _bvh_files(folder: Path) -> list[Path]:
-    files = sorted(p for p in folder.rglob("*") if p.suffix.lower() == ".bvh" and p.is_file())
+    """Every ``*.bvh`` under ``folder`` (symlinks followed once; a link that loops back or
+    points nowhere is skipped with a warning naming it)."""
+    files, skipped, seen = [], [], set()
+    for root, dirs, names in os.walk(folder, followlinks=True):
+        real = os.path.realpath(root)
+        if real in seen:  # a symlink back into a folder already walked
+            skipped.append(f"{root} (a symlink loop, or a second link to one folder)")
+            dirs[:] = []
+            continue
+        seen.add(real)
+        for name in names:
+            p = Path(root) / name
+            if p.suffix.lower() != ".bvh":
+                continue
+            if p.is_file():
+                files.append(p)
+            elif p.is_symlink():
+                skipped.append(f"{p} (a symlink loop or a link to nothing)")
+    if skipped:
+        warnings.warn(
+            f"skipped {len(skipped)} path(s) under {folder}: {', '.join(skipped[:3])}; remove "
+            "or fix the links",
+            stacklevel=3,
+        )
+    files.sort()
     if not files:
         raise MotionDataError(f"no .bvh files in {folder}; " + _DOWNLOAD_HINT, path=str(folder))
     return files
@@ -192,7 +247,8 @@ def _bandai_meta(name: str, manifest: dict[str, dict]) -> dict:
     return meta
 
 
-def _bvh_clips(files, fps, skeleton, source, meta_fn) -> list[Clip]:
+def _bvh_clips(files, fps, skeleton, source, meta_fn, manifest=None) -> list[Clip]:
+    check_checksums(files, manifest or {})  # once, when the cache is built
     return [clip_from_bvh(f, fps, skeleton, meta=meta_fn(f.stem)) for f in files]
 
 
@@ -289,6 +345,12 @@ class MotionDataset:
     def __repr__(self) -> str:
         sizes = ", ".join(f"{s}={len(self._splits[s])}" for s in SPLITS)
         return f"MotionDataset({self.info.get('source')}: windows {sizes})"
+
+    def with_test(self, windows: WindowSet, **info) -> MotionDataset:
+        """A copy whose test split is ``windows`` (e.g. takes of an unseen performer); the
+        standardiser and the other splits are kept, ``info`` entries are added."""
+        splits = dict(self._splits, test=windows)
+        return MotionDataset(splits, self.standardizer, {**self.info, **info}, self.clips)
 
     def arrays(self, split: str, *, standardized: bool = True) -> dict[str, np.ndarray]:
         """All windows of a split: {"pose": (N, T, 63), "control": (N, T, 3), "valid"}."""
@@ -398,13 +460,20 @@ def load_clips(
         )
         return clips, {"cache_file": cfile}
     if name == "bandai":
-        folder = Path(path) if path else default_bandai_dir()
-        if folder is None or not folder.is_dir():
-            where = str(folder) if folder else f"{BANDAI_DEFAULT} (and $MOTIONFLOWS_BANDAI_DIR)"
+        folders = [Path(path)] if path else default_bandai_dirs()
+        if not folders or not all(f.is_dir() for f in folders):
+            env = os.environ.get("MOTIONFLOWS_BANDAI_DIR")
+            where = (
+                str(folders[0])
+                if folders
+                else (f"$MOTIONFLOWS_BANDAI_DIR={env}" if env else str(BANDAI_DEFAULT))
+            )
             raise MotionDataError(f"Bandai data folder not found: {where}; " + _DOWNLOAD_HINT)
+        folder = folders[0]
         mapping = get_skeleton("bandai")
         manifest = {r["file"]: r for r in bandai_manifest()}
-        manifest.update(_folder_manifest(folder))
+        for f in folders:
+            manifest.update(_folder_manifest(f))
 
         def meta_fn(stem):
             return _bandai_meta(stem, manifest)
@@ -412,8 +481,16 @@ def load_clips(
         if path is None:
             raise ValueError("load_dataset('bvh') needs path=<folder of .bvh files>")
         folder = Path(path)
+        if folder.is_file():
+            raise MotionDataError(
+                "is a file, but the bvh source reads a folder of .bvh files (at least 3 takes "
+                "for the train/val/test split); put the file in a folder and pass bvh:DIR "
+                "(to look at one file, use `motionflows render FILE`)",
+                path=str(folder),
+            )
         if not folder.is_dir():
             raise MotionDataError("BVH folder not found", path=str(folder))
+        folders = [folder]
         mapping = get_skeleton(skeleton)
         local = _folder_manifest(folder)
 
@@ -426,22 +503,26 @@ def load_clips(
                 "style": row.get("style", ""),
             }
 
-    files = _bvh_files(folder)
+    files = sorted((f for d in folders for f in _bvh_files(d)), key=lambda f: f.name)
     if contents:
         wanted = {contents} if isinstance(contents, str) else set(contents)
         files = [f for f in files if meta_fn(f.stem).get("content") in wanted]
         if not files:
             raise MotionDataError(f"no files with content in {sorted(wanted)}", path=str(folder))
-    key = {"source": name, "files": _file_key(files), "folder": str(folder.resolve()),
+    key = {"source": name, "files": _file_key(files),
+           "folder": [str(d.resolve()) for d in folders] if len(folders) > 1
+           else str(folder.resolve()),
            "fps": fps, "skeleton": mapping.to_dict(), "v": _code_version(),
            "meta": _hash([meta_fn(f.stem) for f in files])}  # fmt: skip
     clips, cfile = _cached(
         key,
-        lambda: _bvh_clips(files, fps, mapping, name, meta_fn),
+        lambda: _bvh_clips(
+            files, fps, mapping, name, meta_fn, manifest if name == "bandai" else {}
+        ),
         cache=cache,
         directory=cache_dir,
     )
-    return clips, {"cache_file": cfile, "path": str(folder)}
+    return clips, {"cache_file": cfile, "path": os.pathsep.join(str(d) for d in folders)}
 
 
 def load_dataset(
@@ -498,6 +579,14 @@ def load_dataset(
     if len(set(names)) != len(names):
         raise MotionDataError("take names are not unique; rename the duplicate files")
     assignment = _split_names(clips, split_by, val_frac, test_frac, val_performers, test_performers)
+    empty = [s for s in ("val", "test") if not assignment[s]]
+    if empty:
+        where = f" in {source_info['path']}" if source_info.get("path") else ""
+        raise MotionDataError(
+            f"the {' and '.join(empty)} split(s) got no take: found {len(clips)} take(s){where}, "
+            "and a split by take needs at least 3 takes per content group (one each for "
+            "train, val and test); add takes"
+        )
     by_name = {c.name: c for c in clips}
     split_clips = {s: [by_name[n] for n in sorted(assignment[s])] for s in SPLITS}
     splits, stats = {}, {}
@@ -515,10 +604,16 @@ def load_dataset(
         )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     if dropped:
+        if short == "pad":
+            floor = max(2, int(window) // 4) if min_frames is None else int(min_frames)
+            why = f"shorter than min_frames={floor} (short='pad' pads takes of at least that)"
+            fix = "pass a smaller min_frames or window to keep them"
+        else:
+            why = f"shorter than the window {window} (short='drop')"
+            fix = "use short='pad' or a smaller window to keep them"
         warnings.warn(
-            f"{len(dropped)} clip(s) (augmented copies included) were dropped as shorter than "
-            f"the window {window} (short={short!r}) or min_frames: {dropped[:5]}; use "
-            "short='pad' or a smaller window to keep them",
+            f"{len(dropped)} clip(s) (augmented copies included) were dropped as {why}: "
+            f"{dropped[:5]}; {fix}",
             stacklevel=2,
         )
     standardizer = Standardizer.fit(

@@ -12,7 +12,6 @@ Files already present and valid are skipped; a copy of the manifest is written b
 
 from __future__ import annotations
 
-import hashlib
 import os
 import shutil
 import sys
@@ -22,7 +21,7 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
-from motionflows.data.datasets import MANIFEST, bandai_manifest
+from motionflows.data.datasets import MANIFEST, bandai_manifest, git_blob_sha1
 from motionflows.errors import MotionDataError
 
 COMMIT = "74ead3ba1ae4696404e6086233779f60de8bf9ef"
@@ -32,13 +31,6 @@ ATTRIBUTION = (
     "Bandai-Namco-Research-Motiondataset, (c) 2022 Bandai Namco Research Inc., "
     "CC BY-NC 4.0 (non-commercial use only)"
 )
-
-
-def git_blob_sha1(data: bytes) -> str:
-    """The git blob id of ``data``: sha1 of ``b"blob <len>\\0" + data``."""
-    h = hashlib.sha1(b"blob %d\0" % len(data))
-    h.update(data)
-    return h.hexdigest()
 
 
 def file_is_valid(path: Path, sha1: str, size: int | None = None) -> bool:
@@ -57,9 +49,33 @@ def _print_progress(event: dict) -> None:
     )
 
 
-def _fetch(url: str, timeout: float) -> bytes:
+class _TooLarge(Exception):
+    """A response longer than the manifest's size for the file."""
+
+
+def _fetch(url: str, timeout: float, limit: int) -> bytes:
+    """The body of ``url``, reading at most ``limit`` bytes (``_TooLarge`` beyond that)."""
     with urllib.request.urlopen(url, timeout=timeout) as response:  # noqa: S310 (http/https)
-        return response.read()
+        length = response.headers.get("Content-Length")
+        if length is not None and length.isdigit() and int(length) > limit:
+            raise _TooLarge(f"{url} announces {int(length)} bytes, expected {limit}")
+        data = response.read(limit + 1)
+    if len(data) > limit:
+        raise _TooLarge(f"{url} sent more than the expected {limit} bytes")
+    return data
+
+
+def _safe_name(name: str) -> bool:
+    """A manifest file name that stays inside ``dest``: one plain path component."""
+    return (
+        bool(name)
+        and name not in (".", "..")
+        and "/" not in name
+        and "\\" not in name
+        and "\0" not in name
+        and not Path(name).is_absolute()
+        and Path(name).name == name
+    )
 
 
 def download_bandai(
@@ -69,8 +85,9 @@ def download_bandai(
     progress: bool | Callable[[dict], None] = True,
     files: list[str] | None = None,
     contents: list[str] | None = None,
-    timeout: float = 60.0,
+    timeout: float = 10.0,
     retries: int = 2,
+    manifest: str | os.PathLike | None = None,
 ) -> dict:
     """Fetch the manifest's files into ``dest`` and verify them.
 
@@ -80,6 +97,10 @@ def download_bandai(
       progress: True prints one line per file to stderr; a callable gets a dict
         (index, total, file, status, bytes); False is silent.
       files: only these file names (default all); contents: only these contents (walk, run..).
+      timeout: seconds per request; retries: further tries per file. A server that cannot
+        be reached at all stops the whole download after the first file's tries.
+      manifest: the manifest CSV (default: the packaged one); every ``file`` entry must be
+        a plain file name (nothing is written outside ``dest``).
     Returns:
       {"dest", "downloaded", "skipped", "total", "bytes"}.
     Raises:
@@ -89,7 +110,22 @@ def download_bandai(
     report = _print_progress if progress is True else (progress or (lambda event: None))
     if not base_url.endswith("/"):
         base_url += "/"
-    rows = bandai_manifest()
+    rows = bandai_manifest(manifest)
+    unsafe = [r.get("file") for r in rows if not _safe_name(r.get("file") or "")]
+    if unsafe:
+        raise MotionDataError(
+            f"the manifest lists file name(s) {unsafe[:3]} that would be written outside "
+            "the destination folder; use the packaged manifest",
+            path=str(manifest or MANIFEST),
+        )
+    for r in rows:
+        try:
+            r["bytes"] = int(r["bytes"])
+        except (KeyError, TypeError, ValueError):
+            raise MotionDataError(
+                f"manifest entry {r.get('file')!r} has no valid 'bytes' size",
+                path=str(manifest or MANIFEST),
+            ) from None
     if files is not None:
         wanted = {f if f.endswith(".bvh") else f + ".bvh" for f in files}
         unknown = sorted(wanted - {r["file"] for r in rows})
@@ -99,6 +135,8 @@ def download_bandai(
     if contents is not None:
         rows = [r for r in rows if r["content"] in set(contents)]
     out = Path(dest)
+    if out.exists() and not out.is_dir():
+        raise MotionDataError("is a file, not a folder; give --dest a folder path", path=str(out))
     out.mkdir(parents=True, exist_ok=True)
     summary = {"dest": str(out), "downloaded": 0, "skipped": 0, "total": len(rows), "bytes": 0}
     failures = []
@@ -110,20 +148,26 @@ def download_bandai(
             summary["skipped"] += 1
             report(dict(event, status="present, checksum ok (skipped)"))
             continue
-        data, problem = None, ""
+        data, problem, unreachable = None, "", False
         for attempt in range(retries + 1):
             for url in (base_url + row["source_path"], base_url + row["file"]):
+                unreachable = False
                 try:
-                    data = _fetch(url, timeout)
+                    data = _fetch(url, timeout, size)
                 except urllib.error.HTTPError as err:
                     problem = f"HTTP {err.code} for {url}"
                     data = None
                     if err.code == 404:
                         continue
                     break
-                except (urllib.error.URLError, OSError, TimeoutError) as err:
-                    problem = f"cannot fetch {url}: {err}"
+                except _TooLarge as err:
+                    problem = str(err)
                     data = None
+                    continue
+                except (urllib.error.URLError, OSError, TimeoutError) as err:
+                    reason = getattr(err, "reason", err)
+                    problem = f"cannot reach {url}: {reason}"
+                    data, unreachable = None, True
                     break
                 if git_blob_sha1(data) != row["git_blob_sha1"]:
                     problem = (
@@ -135,7 +179,14 @@ def download_bandai(
             if data is not None:
                 break
             if attempt < retries:
-                time.sleep(min(2.0**attempt, 5.0))
+                time.sleep(min(0.5 * 2.0**attempt, 2.0))
+        if data is None and unreachable:
+            raise MotionDataError(
+                f"{problem} (after {retries + 1} tries, {timeout:g} s timeout each); check the "
+                f"network or --url and run the same command again ({summary['downloaded']} "
+                "file(s) fetched before are kept and skipped next time)",
+                path=str(out),
+            )
         if data is None:
             failures.append(f"{row['file']}: {problem}")
             report(dict(event, status=f"FAILED ({problem})"))

@@ -43,6 +43,13 @@ from motionflows.data.names import (
 from motionflows.errors import MotionDataError
 
 ROOT_SIGMA_S = 0.05  # 3 frames at 60 fps
+MAX_POSITION_M = 1000.0
+"""Largest accepted |joint coordinate| in metres after unit conversion (1 km)."""
+MAX_RESAMPLED_FRAMES = 360_000
+"""Longest accepted clip after resampling: 5 hours at 20 fps (~180 MB per position array)."""
+MAX_UPSAMPLE = 200.0
+"""Largest accepted ratio of target to source frame rate: resampling never makes a clip
+more than 200 times longer (in frames) than the file it was read from."""
 FACING_SIGMA_S = 1.0 / 3.0  # 20 frames at 60 fps
 _HIP = JOINT_NAMES.index("Hips")
 _LARM, _RARM = JOINT_NAMES.index("LeftArm"), JOINT_NAMES.index("RightArm")
@@ -116,12 +123,27 @@ def resample(x: np.ndarray, src_fps: float, dst_fps: float) -> np.ndarray:
     """Linearly interpolate frames (axis 0) sampled at ``src_fps`` at ``t = k / dst_fps``.
 
     Keeps every target time within the source span: ``K = floor((F-1) dst/src) + 1``.
+    Raises ``ValueError`` before allocating anything if ``dst/src > MAX_UPSAMPLE`` or
+    ``K > MAX_RESAMPLED_FRAMES``.
     """
     x = np.asarray(x, dtype=np.float64)
     if abs(src_fps - dst_fps) < 1e-9 * dst_fps:
         return x.copy()
     n = x.shape[0]
-    count = int(np.floor((n - 1) * dst_fps / src_fps + 1e-6)) + 1
+    ratio = dst_fps / src_fps
+    if not ratio <= MAX_UPSAMPLE:
+        raise ValueError(
+            f"resampling {src_fps:g} fps to {dst_fps:g} fps would make the clip {ratio:g} "
+            f"times longer, beyond the limit of {MAX_UPSAMPLE:g}; check the source frame "
+            "rate (BVH Frame Time) or choose a lower target fps"
+        )
+    count = int(np.floor((n - 1) * ratio + 1e-6)) + 1
+    if count > MAX_RESAMPLED_FRAMES:
+        raise ValueError(
+            f"resampling {n} frames at {src_fps:g} fps to {dst_fps:g} fps gives {count} "
+            f"frames, beyond the limit of {MAX_RESAMPLED_FRAMES} "
+            f"({MAX_RESAMPLED_FRAMES / dst_fps:g} s); split the take into shorter files"
+        )
     t = np.arange(count) * (src_fps / dst_fps)
     i0 = np.minimum(np.floor(t).astype(np.int64), n - 1)
     i1 = np.minimum(i0 + 1, n - 1)
@@ -165,11 +187,23 @@ def features_from_positions(
     world = np.asarray(world, dtype=np.float64)
     if world.ndim != 3 or world.shape[1:] != (NUM_JOINTS, 3):
         raise ValueError(f"world positions must be (F, {NUM_JOINTS}, 3), got {world.shape}")
-    if not np.isfinite(world).all():
-        raise MotionDataError("world joint positions contain non-finite values", path=path)
+    bad = ~np.isfinite(world) | (np.abs(np.nan_to_num(world, nan=0.0)) > MAX_POSITION_M)
+    if bad.any():
+        k, j, _ = (int(v[0]) for v in np.nonzero(bad))
+        value = world[k, j][bad[k, j]][0]
+        what = "is not finite" if not np.isfinite(value) else f"is {value:g} m"
+        raise MotionDataError(
+            f"joint {JOINT_NAMES[j]} in frame {k} {what} after conversion to metres, beyond "
+            f"the limit of {MAX_POSITION_M:g} m; the file is damaged, or its units or the "
+            "skeleton mapping's unit are wrong",
+            path=path,
+        )
     if not (np.isfinite(fps) and fps > 0 and np.isfinite(src_fps) and src_fps > 0):
         raise ValueError(f"fps must be positive, got fps={fps}, src_fps={src_fps}")
-    p = resample(world, src_fps, fps)
+    try:
+        p = resample(world, src_fps, fps)
+    except ValueError as err:
+        raise MotionDataError(str(err), path=path) from None
     if p.shape[0] < 2:
         raise MotionDataError(
             f"the motion is too short: {world.shape[0]} frame(s) at {src_fps:g} fps give "

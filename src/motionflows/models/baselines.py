@@ -31,13 +31,17 @@ import numpy as np
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.models.validation import check_input, check_temperature
 
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def _check_pose(pose: jax.Array, dim: int, name: str = "pose") -> None:
-    if pose.ndim < 2 or pose.shape[-1] != dim:
-        raise ValueError(f"{name} must have shape (..., T, {dim}); got {tuple(pose.shape)}")
+def _check_pose(pose: jax.Array, dim: int, name: str = "pose") -> jax.Array:
+    """Shape (..., T, dim), then ``validation.check_input``; returns float32."""
+    shape = getattr(pose, "shape", None)
+    if shape is None or len(shape) < 2 or shape[-1] != dim:
+        raise ValueError(f"{name} must have shape (..., T, {dim}); got {shape}")
+    return check_input(pose, name, "baseline")
 
 
 class DiagonalGaussian(nnx.Module):
@@ -54,7 +58,7 @@ class DiagonalGaussian(nnx.Module):
 
     def frame_log_prob(self, pose: jax.Array) -> jax.Array:
         """Log-density of each frame: pose (..., T, D) -> (..., T)."""
-        _check_pose(pose, self.pose_dim)
+        pose = _check_pose(pose, self.pose_dim)
         log_std = self.log_std[...]
         z = (pose - self.mean[...]) * jnp.exp(-log_std)
         return -0.5 * jnp.sum(z**2, -1) - jnp.sum(log_std) - 0.5 * self.pose_dim * LOG_2PI
@@ -66,6 +70,7 @@ class DiagonalGaussian(nnx.Module):
 
     def sample(self, key: jax.Array, shape: tuple[int, int], *, temperature: float = 1.0):
         """Draw poses of shape ``shape + (D,)`` = (B, T, D)."""
+        check_temperature(temperature, "DiagonalGaussian.sample")
         eps = jax.random.normal(key, tuple(shape) + (self.pose_dim,), jnp.float32)
         return self.mean[...] + temperature * jnp.exp(self.log_std[...]) * eps
 
@@ -119,8 +124,8 @@ class LinearGaussianAR(nnx.Module):
         """Feature vectors ``h_t`` for every frame: pose (B, T, D), control (B, T, C) ->
         (B, T, F). History before frame 0 is ``history`` (B, tau, D) or zeros; controls
         before frame 0 are zeros."""
-        _check_pose(pose, self.pose_dim)
-        _check_pose(control, self.control_dim, "control")
+        pose = _check_pose(pose, self.pose_dim)
+        control = _check_pose(control, self.control_dim, "control")
         b, t = pose.shape[0], pose.shape[1]
         tau = self.tau
         if history is None:
@@ -161,12 +166,13 @@ class LinearGaussianAR(nnx.Module):
         ``history`` (B, S, D): the last ``tau`` of these frames seed the history (zeros if
         None or shorter). Controls before frame 0 are zeros.
         """
-        _check_pose(control, self.control_dim, "control")
+        control = _check_pose(control, self.control_dim, "control")
+        check_temperature(temperature, "LinearGaussianAR.sample")
         b, t = control.shape[0], control.shape[1]
         tau, d = self.tau, self.pose_dim
         hist = jnp.zeros((b, tau, d), jnp.float32)
         if history is not None and tau > 0:
-            _check_pose(history, d, "seed_pose")
+            history = _check_pose(history, d, "seed_pose")
             s = min(tau, history.shape[1])
             if s > 0:
                 hist = hist.at[:, tau - s :].set(history[:, -s:].astype(jnp.float32))

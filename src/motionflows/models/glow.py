@@ -52,6 +52,7 @@ from motionflows.bijectors import (
     unsqueeze_time,
 )
 from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
+from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.conv import ConvNet, TimeConv
 
 Array = jax.Array
@@ -65,10 +66,6 @@ _LOG_2PI = math.log(2.0 * math.pi)
 def standard_normal_log_prob(z: Array) -> Array:
     """sum over the last axis of log N(z; 0, 1): (..., N) -> (...)."""
     return -0.5 * jnp.sum(jnp.square(z), axis=-1) - 0.5 * z.shape[-1] * _LOG_2PI
-
-
-def _is_concrete(x: Any) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def _normalize_dtype(dtype: Any) -> str | None:
@@ -252,13 +249,8 @@ class Glow(nnx.Module):
                 f"Glow expects {name} of shape (..., T, {self.pose_dim}) (batch, frames, pose "
                 f"channels), got {shape if shape is not None else type(x).__name__}"
             )
-        if not jnp.issubdtype(x.dtype, jnp.floating):
-            raise ValueError(f"Glow expects floating-point {name}, got dtype {x.dtype}")
         self._check_length(shape[-2])
-        x = jnp.asarray(x, jnp.float32)
-        if _is_concrete(x) and not bool(jnp.all(jnp.isfinite(x))):
-            raise ValueError(f"Glow got non-finite values (NaN or inf) in {name}; clean the data")
-        return x
+        return check_input(x, name, "Glow")
 
     def _check_control(self, control: Any, batch: tuple, length: int) -> Array | None:
         if not self.conditional:
@@ -286,9 +278,7 @@ class Glow(nnx.Module):
                 f"Glow: control batch shape {tuple(shape[:-2])} does not match the pose batch "
                 f"shape {tuple(batch)}"
             ) from None
-        control = jnp.asarray(control, jnp.float32)
-        if _is_concrete(control) and not bool(jnp.all(jnp.isfinite(control))):
-            raise ValueError("Glow got non-finite values (NaN or inf) in the control")
+        control = check_input(control, "control", "Glow")
         return jnp.broadcast_to(control, tuple(batch) + (length, self.control_dim))
 
     # ------------------------------------------------------------------ the bijection
@@ -405,5 +395,8 @@ class Glow(nnx.Module):
                 )
             batch, t = (int(num),), int(self.length if length is None else length)
         self._check_length(t)
+        check_temperature(temperature, "Glow.sample")
+        if any(n == 0 for n in batch):
+            raise ValueError(f"Glow.sample: the batch is empty (shape {batch}); ask for >= 1")
         eps = jax.random.normal(key, batch + (t * self.pose_dim,), jnp.float32)
         return self.decode(temperature * eps, control)

@@ -68,6 +68,7 @@ from motionflows.bijectors import (
     coupling_sizes,
 )
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.lstm import LSTM
 from motionflows.nets.precision import matmul
 
@@ -80,6 +81,7 @@ __all__ = [
     "StreamState",
     "build_conditions",
     "history_dropout_mask",
+    "previous_frames",
     "import_stylegestures",
     "load_stylegestures_checkpoint",
 ]
@@ -238,6 +240,16 @@ def build_conditions(
     return targets, cond
 
 
+def previous_frames(pose: Array, tau: int, scope: str = "official") -> Array:
+    """The true pose before each target frame of :func:`build_conditions`: (B, T', D).
+
+    ``"official"``: frames tau-1 .. T-2; ``"window"``: a zero frame, then frames 0 .. T-2.
+    """
+    if scope == "window":
+        return jnp.pad(pose, [(0, 0)] * (pose.ndim - 2) + [(1, 0), (0, 0)])[..., :-1, :]
+    return pose[..., tau - 1 : -1, :]
+
+
 # ----------------------------------------------------------------------------- model
 
 
@@ -294,6 +306,11 @@ class MoGlow(nnx.Module):
       base: ``"normal"`` or ``"studentt"`` (standard, ``df`` degrees of freedom).
       dropout: history-dropout probability used by :meth:`log_prob` when given a key.
       compute_dtype: ``None`` (float32) or ``"bfloat16"`` for the conditioner matmuls.
+      residual: flow the change ``x_t - x_{t-1}`` instead of ``x_t`` (the true previous pose,
+        never dropped; zero before frame 0). A shift by a function of the history, so the
+        log-determinant is unchanged and the density of x_t is exact; the ActNorm data
+        initialisation then sees the per-frame change, whose scale is the predictable part
+        a plain MoGlow needs many steps to learn (see docs/readme/moglow_quality.md).
       rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
     """
 
@@ -312,6 +329,7 @@ class MoGlow(nnx.Module):
         dropout: float = 0.0,
         compute_dtype: str | None = None,
         eps: float = 1e-6,
+        residual: bool = False,
         rngs: nnx.Rngs | Array,
     ):
         if conditioner not in ("lstm", "ff"):
@@ -339,6 +357,7 @@ class MoGlow(nnx.Module):
         self.dropout = float(dropout)
         self.compute_dtype = compute_dtype
         self.eps = float(eps)
+        self.residual = bool(residual)
         self.cond_dim = self.tau * self.pose_dim + (self.tau + 1) * self.control_dim
         if not isinstance(rngs, nnx.Rngs):
             rngs = nnx.Rngs(rngs)
@@ -355,7 +374,9 @@ class MoGlow(nnx.Module):
 
     # -- validation
 
-    def _check(self, pose: Array | None, control: Array, name: str) -> None:
+    def _check(self, pose: Array | None, control: Array, name: str) -> tuple[Array | None, Array]:
+        """Shapes, then dtype, emptiness and finiteness (``validation.check_input``);
+        returns (pose, control) as float32."""
         c = getattr(control, "shape", None)
         if c is None or len(c) != 3 or c[-1] != self.control_dim:
             raise ValueError(f"MoGlow.{name}: control must be (B, T, {self.control_dim}), got {c}")
@@ -365,6 +386,8 @@ class MoGlow(nnx.Module):
                 raise ValueError(f"MoGlow.{name}: pose must be (B, T, {self.pose_dim}), got {p}")
             if p[:2] != c[:2]:
                 raise ValueError(f"MoGlow.{name}: pose {p} and control {c} must share (B, T)")
+            pose = check_input(pose, "pose", f"MoGlow.{name}")
+        return pose, check_input(control, "control", f"MoGlow.{name}")
 
     # -- base density
 
@@ -397,10 +420,18 @@ class MoGlow(nnx.Module):
         pose (B, T, D), context = control (B, T, C) -> (z (B, T', D), log|det dz/dx| (B,)),
         T' = T - tau ("official") or T ("window"). Used by ``initialize_from_data``.
         """
-        self._check(pose, context, "inverse_and_log_det")
+        pose, context = self._check(pose, context, "inverse_and_log_det")
+        if scope == "official" and pose.shape[1] <= self.tau:
+            raise ValueError(
+                f"MoGlow: the official scope scores frames tau..T-1, so windows need more than "
+                f"tau={self.tau} frames, got T={pose.shape[1]}; use longer windows or "
+                "scope='window'"
+            )
         targets, cond = build_conditions(
             pose, context, self.tau, scope=scope, dropout=dropout, key=key
         )
+        if self.residual:
+            targets = targets - previous_frames(pose, self.tau, scope)
         return self.flow.inverse_and_log_det(targets, context=cond)
 
     def log_prob(
@@ -424,6 +455,7 @@ class MoGlow(nnx.Module):
                 "frames (pass key=jax.random.key(...)), or leave dropout unset for clean scoring"
             )
         rate = 0.0 if key is None else (self.dropout if dropout is None else float(dropout))
+        pose, control = self._check(pose, control, "log_prob")  # messages name log_prob
         z, log_det = self.inverse_and_log_det(
             pose, context=control, scope=scope, dropout=rate, key=key
         )
@@ -512,7 +544,7 @@ class MoGlow(nnx.Module):
         def fit(arr, dim, name):
             if arr is None:
                 return jnp.zeros((batch, tau, dim), jnp.float32)
-            arr = jnp.asarray(arr, jnp.float32)
+            arr = check_input(arr, name, "MoGlow")
             if arr.ndim == 2:
                 arr = jnp.broadcast_to(arr[None], (batch, *arr.shape))
             if arr.ndim != 3 or arr.shape[-1] != dim or arr.shape[0] != batch:
@@ -557,6 +589,8 @@ class MoGlow(nnx.Module):
             axis=-1,
         )
         x_t, carry = self._frame_to_data(z_t, cond_t, state.carry, state.inv_w)
+        if self.residual:
+            x_t = x_t + state.poses[:, -1]
         new = StreamState(
             carry=carry,
             poses=jnp.concatenate([state.poses[:, 1:], x_t[:, None]], axis=1),
@@ -579,12 +613,14 @@ class MoGlow(nnx.Module):
         The latent is ``temperature * eps`` with eps drawn from ``fold_in(key, state.t)``:
         passing the same key at every step reproduces :meth:`sample` with that key.
         """
-        control_t = jnp.asarray(control_t, jnp.float32)
-        if control_t.ndim != 2 or control_t.shape != (state.poses.shape[0], self.control_dim):
+        shape = tuple(getattr(control_t, "shape", np.shape(control_t)))
+        if shape != (state.poses.shape[0], self.control_dim):
             raise ValueError(
                 f"MoGlow.stream_step: control_t must be (B={state.poses.shape[0]}, "
-                f"{self.control_dim}), got {control_t.shape}"
+                f"{self.control_dim}), got {shape}"
             )
+        control_t = check_input(control_t, "control_t", "MoGlow.stream_step")
+        check_temperature(temperature, "MoGlow.stream_step")
         z_t = temperature * self._noise(
             jax.random.fold_in(key, state.t), (control_t.shape[0], self.pose_dim)
         )
@@ -599,7 +635,8 @@ class MoGlow(nnx.Module):
         seed_control: Array | None = None,
     ) -> Array:
         """Latents z (B, T, D) and control (B, T, C) -> poses (B, T, D), frame by frame."""
-        self._check(None, control, "generate")
+        _, control = self._check(None, control, "generate")
+        z = check_input(z, "z", "MoGlow.generate")
         state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
 
         def body(st, inputs):
@@ -624,8 +661,8 @@ class MoGlow(nnx.Module):
         Frame t's latent is ``temperature * eps_t``, eps_t from ``fold_in(key, t)``
         (temperature 0 gives the exact mode path of the latent). Jit it at the call site.
         """
-        self._check(None, control, "sample")
-        control = jnp.asarray(control, jnp.float32)
+        _, control = self._check(None, control, "sample")
+        check_temperature(temperature, "MoGlow.sample")
         state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
 
         def body(st, c_t):
@@ -769,7 +806,10 @@ def load_stylegestures_checkpoint(path: str, **kwargs) -> MoGlow:
     """Read an official StyleGestures ``.pkg``/``.pt`` checkpoint (needs torch) and import it.
 
     The checkpoint's ``"graph"`` entry (or the file itself, if it is a state dict) is
-    passed to :func:`import_stylegestures` with ``kwargs``.
+    passed to :func:`import_stylegestures` with ``kwargs``. The file is read with
+    ``torch.load(..., weights_only=True)``: tensors and plain containers only, so loading
+    never runs code from the file. A file that needs more (a pickled module or optimiser
+    object) is refused with the reason; it is never loaded unsafely.
     """
     try:
         import torch  # noqa: PLC0415
@@ -779,8 +819,22 @@ def load_stylegestures_checkpoint(path: str, **kwargs) -> MoGlow:
             "pip install torch (CPU build is enough), or pass a dict of numpy arrays to "
             "import_stylegestures"
         ) from err
-    data = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: file not found") from None
+    except Exception as err:  # torch's UnpicklingError and friends
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(
+            f"{path}: cannot be read safely with torch.load(weights_only=True) ({reason}). "
+            "motionflows does not load checkpoints that may run code; re-save the weights "
+            "alone, e.g. torch.save(checkpoint['graph'], 'graph.pt') in the environment that "
+            "wrote it, or pass a dict of numpy arrays to import_stylegestures"
+        ) from None
     state = data.get("graph", data) if isinstance(data, dict) else data
-    if hasattr(state, "state_dict"):
-        state = state.state_dict()
+    if not isinstance(state, dict):
+        raise ValueError(
+            f"{path}: expected a state dict (parameter name -> tensor) or a dict with a "
+            f"'graph' state dict, got {type(state).__name__}"
+        )
     return import_stylegestures(dict(state), **kwargs)

@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
+from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -170,8 +171,15 @@ class VAELSTM(nnx.Module):
 
     # ------------------------------------------------------------------ validation
     @staticmethod
-    def _check(x: jax.Array | None, c: jax.Array | None) -> None:
-        """Shape checks with messages for people (shapes are static, so this is jit-safe)."""
+    def _check(
+        x: jax.Array | None, c: jax.Array | None, where: str = "VAELSTM"
+    ) -> tuple[jax.Array | None, jax.Array | None]:
+        """Shape checks with messages for people (shapes are static, so this is jit-safe),
+        then dtype, emptiness and finiteness (``validation.check_input``); returns (x, c)
+        as float32."""
+        for name, a in (("control", c), ("pose", x)):
+            if a is not None and getattr(a, "ndim", None) is None:
+                raise ValueError(f"{where}: {name} must be an array, got {type(a).__name__}")
         if c is not None:
             if c.ndim != 3 or c.shape[-1] != CONTROL_DIM:
                 raise ValueError(
@@ -195,6 +203,10 @@ class VAELSTM(nnx.Module):
                 raise ValueError(
                     f"pose {tuple(x.shape)} and control {tuple(c.shape)} must share (B, T)"
                 )
+            x = check_input(x, "pose", where)
+        if c is not None:
+            c = check_input(c, "control", where)
+        return x, c
 
     # ------------------------------------------------------------------ networks
     def encode_control(self, c: jax.Array, key: jax.Array | None = None) -> jax.Array:
@@ -248,7 +260,7 @@ class VAELSTM(nnx.Module):
         """One-sample ELBO pieces per window (B,): ``log_lik`` = log p(x|z,c) at z ~ q,
         ``kl`` = sum over pooled steps and latents of KL(q(z_t|x) || N(0, I)) (analytic),
         ``elbo`` = log_lik - kl. ``train=True`` enables dropout (and fresh unpool masks)."""
-        self._check(x, c)
+        x, c = self._check(x, c, "VAELSTM.elbo")
         kd_c, kd_x, kz, ku = jax.random.split(key, 4)
         if not train:
             kd_c = kd_x = ku = None
@@ -268,6 +280,7 @@ class VAELSTM(nnx.Module):
         ``key`` None uses ``jax.random.key(0)``: a fixed, reproducible draw."""
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+        x, c = self._check(x, c, "VAELSTM.elbo")
         keys = jax.random.split(jax.random.key(0) if key is None else key, num_samples)
         return jax.lax.map(lambda k: self.elbo_terms(x, c, k)["elbo"], keys).mean(axis=0)
 
@@ -275,7 +288,7 @@ class VAELSTM(nnx.Module):
         """Importance log-weights log p(x|z_k,c) + log p(z_k) - log q(z_k|x), z_k ~ q(z|x):
         (num_samples, B). Evaluation mode (no dropout); the decoder is in training mode
         (s = z_t), the model the bounds refer to."""
-        self._check(x, c)
+        x, c = self._check(x, c, "VAELSTM.iwae_bound")
         h = self.encode_control(c)
         mu, log_std = self.posterior(x)
 
@@ -305,7 +318,7 @@ class VAELSTM(nnx.Module):
         noise): p_rec(x | c) = int N(z_1; 0, I) N(x; m_rec(z_1, c), diag sigma_x^2) dz_1,
         with m_rec the decoder of the recurrent canvas. Proposal: q(z_1 | x), the
         inference network's first pooled step. Returns (num_samples, B)."""
-        self._check(x, c)
+        x, c = self._check(x, c, "VAELSTM.sampler_iwae_bound")
         h = self.encode_control(c)
         mu, log_std = self.posterior(x)
         mu1, ls1 = mu[:, :1], log_std[:, :1]
@@ -349,7 +362,8 @@ class VAELSTM(nnx.Module):
         frames are all decoded (the seed is not pasted in). The output is the decoder
         mean (no observation noise is added).
         """
-        self._check(None, control)
+        _, control = self._check(None, control, "VAELSTM.sample")
+        check_temperature(temperature, "VAELSTM.sample")
         b = control.shape[0]
         h = self.encode_control(control)
         eps = jax.random.normal(key, (b, 1, self.latent_dim), jnp.float32)
@@ -361,7 +375,7 @@ class VAELSTM(nnx.Module):
                     f"seed_frames must have shape (B={b}, S, {POSE_DIM}), "
                     f"got {tuple(seed_frames.shape)}"
                 )
-            self._check(seed_frames, None)
+            seed_frames, _ = self._check(seed_frames, None, "VAELSTM.sample")
             if seed_frames.shape[1] > control.shape[1]:
                 raise ValueError("seed_frames must not be longer than the control")
             mu, log_std = self.posterior(seed_frames)
@@ -372,7 +386,7 @@ class VAELSTM(nnx.Module):
 
     def reconstruct(self, x: jax.Array, c: jax.Array) -> jax.Array:
         """Decoder mean at the posterior mean z = mu(x), training-mode canvas: (B, T, 63)."""
-        self._check(x, c)
+        x, c = self._check(x, c, "VAELSTM.reconstruct")
         mu, _ = self.posterior(x)
         return self.decode(self.canvas(mu, self.encode_control(c)))
 

@@ -1,0 +1,178 @@
+"""Motion quality and likelihood of one experiment against training steps and temperature.
+
+Trains (or resumes) one run to each milestone of ``--steps`` and, at every milestone,
+samples the same test controls at each of ``--temperatures`` and scores the motion metrics
+of ``motionflows.evaluation.motion`` (the bench's definitions, ground truth as reference)
+and the test likelihood of every scope the experiment defines. Prints one JSON object per
+(milestone, temperature) and writes ``OUT/quality.jsonl``, ``OUT/QUALITY.md`` and
+``OUT/quality.png``. Used for the MoGlow jitter diagnosis (docs/readme/moglow_quality.md)::
+
+    python benchmarks/model_quality.py moglow --preset quick --data bandai --split performer \\
+        --steps 400,800,1600 --temperatures 1.0,0.8,0.6 --out runs/quality/moglow-quick
+
+``--set key=value`` overrides config fields (the ``motionflows train`` grammar); the run
+directory is ``OUT/run``; an existing run is resumed (milestones already passed are only
+re-scored).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from motionflows import bench, runs
+from motionflows.config import apply_overrides
+from motionflows.training import load_run, train
+
+
+def _parse_floats(text: str) -> list[float]:
+    return [float(t) for t in text.split(",") if t.strip()]
+
+
+def score(run_dir: Path, dataset, temperatures, *, windows: int, seed: int, sample_windows: int):
+    """Rows of motion metrics (per temperature) and the likelihood of the latest checkpoint."""
+    import jax
+
+    exp, config, model, _ = load_run(run_dir, checkpoint="latest", dataset=dataset)
+    key = jax.random.key(seed)
+    lik = bench.score_likelihood(
+        exp, model, config, dataset, "test", limit=windows, key=key, num_bootstrap=200
+    )
+    idx = bench._pick(dataset.test, sample_windows, seed=2)
+    _, ctrl = bench._standardized(dataset, dataset.test, idx)
+    gt_m = np.asarray(dataset.test.pose, np.float32)[idx]
+    control_m = np.asarray(dataset.test.control, np.float32)[idx]
+    fps = float(config.data.fps)
+    st = dataset.standardizer
+    rows = []
+    for temp in temperatures:
+        sampler = bench.make_sampler(exp, temp)
+        samples = bench.draw_samples(sampler, model, ctrl, jax.random.fold_in(key, 20))
+        one = np.repeat(ctrl[:1], bench.EVAL_CHUNK, axis=0)
+        div = bench.draw_samples(sampler, model, one, jax.random.fold_in(key, 21))[:16]
+        metrics = bench.motion_metrics(
+            np.asarray(st.denormalize_pose(samples), np.float32),
+            control_m,
+            gt_m,
+            np.asarray(st.denormalize_pose(div), np.float32),
+            fps,
+        )
+        metrics.pop("prediction", None)
+        rows.append({"temperature": temp, **metrics})
+    nll = {s: r["test"]["nats_per_frame_metres"] if "test" in r else r["nats_per_frame_metres"]
+           for s, r in lik.items()}  # fmt: skip
+    gt = bench.motion_metrics(gt_m, control_m, gt_m, None, fps)
+    gt["diversity"] = bench.natural_diversity_of(dataset.test)
+    return rows, nll, gt
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("experiment")
+    p.add_argument("--preset", default="quick")
+    p.add_argument("--data", default="bandai")
+    p.add_argument("--split", default="performer", choices=["take", "performer"])
+    p.add_argument("--steps", default="400,800")
+    p.add_argument("--temperatures", default="1.0,0.8,0.6")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    p.add_argument("--windows", type=int, default=256, help="test windows scored")
+    p.add_argument("--sample-windows", type=int, default=64, help="test controls sampled")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True)
+    args = p.parse_args(argv)
+
+    exp = runs.resolve_experiment(args.experiment)
+    config = exp.PRESETS[args.preset]
+    data = bench.parse_data_spec(args.data)
+    config = dataclasses.replace(
+        config,
+        data=dataclasses.replace(
+            config.data,
+            source=data.source,
+            path=data.path,
+            split_by=args.split,
+        ),
+    )
+    config = apply_overrides(config, args.set)
+    out = Path(args.out)
+    run_dir = out / "run"
+    dataset = config.data.load()
+    temps = _parse_floats(args.temperatures)
+    results = []
+    for steps in [int(s) for s in args.steps.split(",")]:
+        t0 = time.perf_counter()
+        cfg = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
+        resume = (run_dir / "config.json").is_file()
+        train(exp, cfg, run_dir=run_dir, preset=args.preset, resume=resume, dataset=dataset,
+              progress=False)  # fmt: skip
+        train_s = time.perf_counter() - t0
+        rows, nll, gt = score(
+            run_dir,
+            dataset,
+            temps,
+            windows=args.windows,
+            seed=args.seed,
+            sample_windows=args.sample_windows,
+        )
+        for row in rows:
+            rec = {"steps": steps, "train_s": train_s, "nll": nll, **row}
+            results.append(rec)
+            print(json.dumps(rec), flush=True)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "quality.jsonl", "w") as fh:
+        for rec in results:
+            fh.write(json.dumps(rec) + "\n")
+    write_report(out, results, gt, " ".join(sys.argv))
+    return 0
+
+
+COLUMNS = ("foot_sliding", "skate_ratio", "contact_rate", "bone_length_std", "jerk",
+           "fd_pose", "fd_window3", "diversity", "diverged")  # fmt: skip
+
+
+def write_report(out: Path, results: list[dict], gt: dict, command: str) -> None:
+    """QUALITY.md (a table) and quality.png (jerk and FD against steps per temperature)."""
+    scopes = sorted(results[0]["nll"]) if results else []
+    head = ["steps", "T", *COLUMNS, *(f"NLL {s}" for s in scopes)]
+    lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines.append(
+        "| ground truth | | "
+        + " | ".join(f"{gt.get(c, float('nan')) or 0:.3f}" for c in COLUMNS)
+        + " |" * (len(scopes) + 1)
+    )
+    for r in results:
+        cells = [str(r["steps"]), f"{r['temperature']:g}"]
+        cells += [f"{r[c]:.3f}" if r.get(c) is not None else "n/a" for c in COLUMNS]
+        cells += [f"{r['nll'][s]:.1f}" for s in scopes]
+        lines.append("| " + " | ".join(cells) + " |")
+    (out / "QUALITY.md").write_text("\n".join(lines) + "\n")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+    for ax, metric in zip(axes, ("jerk", "fd_pose", "foot_sliding"), strict=True):
+        for temp in sorted({r["temperature"] for r in results}, reverse=True):
+            rs = [r for r in results if r["temperature"] == temp]
+            ax.plot([r["steps"] for r in rs], [r[metric] for r in rs], "o-", label=f"T={temp:g}")
+        ax.axhline(gt.get(metric) or 0.0, color="k", ls="--", lw=1, label="ground truth")
+        ax.set_xlabel("training steps")
+        ax.set_title(metric)
+        ax.set_xscale("log")
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "quality.png", dpi=90)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

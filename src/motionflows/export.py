@@ -1,0 +1,93 @@
+"""``motionflows export RUN --out DIR``: a run directory to ship (no optimiser state).
+
+The export holds ``config.json``, ``standardizer.json``, ``metrics.jsonl``, the run's
+``eval_*.json`` tables and ``checkpoints/best/<step>/`` with the model's parameters and
+other variables only (the optimiser state, two thirds of a checkpoint for Adam, is left
+out), so it loads with :func:`motionflows.training.load_run` and
+:class:`motionflows.pretrained.PretrainedModel` like the run itself. ``pretrained.json``
+records the validated sampling temperature. An export of a model trained on the Bandai
+data carries that data's licence note.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from flax import nnx
+
+from motionflows.checkpoints import Checkpointer
+from motionflows.errors import RunError
+
+COPIED = ("config.json", "standardizer.json", "metrics.jsonl", "loss.png")
+BANDAI_NOTE = """# Licence of these weights
+
+This model was trained on the Bandai-Namco-Research-Motiondataset
+("Bandai-Namco-Research-Motiondataset, (c) 2022 Bandai Namco Research Inc., CC BY-NC 4.0",
+https://github.com/BandaiNamcoResearchInc/Bandai-Namco-Research-Motiondataset, cite Kobayashi
+et al., arXiv:2306.08861, 2023). Weights trained on that data inherit its terms: **non-commercial
+use only, with attribution** (CC BY-NC 4.0, https://creativecommons.org/licenses/by-nc/4.0/).
+The motionflows code itself is MIT-licensed.
+"""
+
+
+def export_run(
+    run_dir: str | Path,
+    out: str | Path,
+    *,
+    checkpoint: str = "best",
+    temperature: float | None = None,
+    notes: str | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write the shippable copy of ``run_dir`` to ``out`` and return ``out``.
+
+    ``temperature``: the sampling temperature validated for this model (stored in
+    ``pretrained.json``; default 1.0 when loading). ``overwrite`` replaces an existing
+    export; otherwise a non-empty ``out`` is refused.
+    """
+    from motionflows import runs
+    from motionflows.training import load_run
+
+    run_dir = runs.check_run_dir(run_dir)
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise RunError(f"--out {out} is a file; give a folder for the exported run")
+    if out.resolve() == run_dir.resolve():
+        raise RunError("--out must differ from the run directory")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise RunError(f"--out {out} is not empty; choose a new folder (or pass --overwrite)")
+        shutil.rmtree(out)
+    module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
+    _, params, rest = nnx.split(model, nnx.Param, ...)
+    source = Checkpointer(run_dir / "checkpoints")
+    try:
+        which = checkpoint if source.latest_step(checkpoint) is not None else "latest"
+        step = int(source.latest_step(which))
+        meta = source.restore({"params": params, "rest": rest}, which=which)[1]
+    finally:
+        source.close()
+    out.mkdir(parents=True, exist_ok=True)
+    for name in COPIED:
+        if (run_dir / name).is_file():
+            shutil.copy2(run_dir / name, out / name)
+    for table in sorted(run_dir.glob("eval_*.json")):
+        shutil.copy2(table, out / table.name)
+    meta = {k: v for k, v in meta.items() if k not in ("opt",)}
+    meta.update(exported_from=str(run_dir), exported_checkpoint=which)
+    target = Checkpointer(out / "checkpoints", keep=1)
+    try:
+        target.save(step, {"params": params, "rest": rest}, meta, which="best")
+    finally:
+        target.close()
+    info = {"experiment": module.NAME, "step": step, "checkpoint": which}
+    if temperature is not None:
+        info["temperature"] = float(temperature)
+    if notes:
+        info["notes"] = notes
+    (out / "pretrained.json").write_text(json.dumps(info, indent=2) + "\n")
+    if config.data.source == "bandai":
+        (out / "LICENSE.md").write_text(BANDAI_NOTE)
+    return out

@@ -1,0 +1,109 @@
+"""A trained run wrapped to work in data units: controls in, poses in metres out."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from motionflows.data.names import CONTROL_DIM, POSE_DIM
+
+INFO_FILE = "pretrained.json"
+"""Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
+
+
+def _array(x: Any, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(x)
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(f"{name} must be floating point, got dtype {arr.dtype}")
+    if arr.ndim != 3 or arr.shape[2:] != shape_tail or 0 in arr.shape:
+        raise ValueError(f"{name} must be (B, T, {shape_tail[0]}) with B, T >= 1, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} holds NaN or inf")
+    return arr.astype(np.float32)
+
+
+class PretrainedModel:
+    """A run's model, standardiser and config behind a data-unit API.
+
+    Attributes:
+      module: the experiment module; config: the run's config; model: the trained model
+      (standardised units); standardizer: the run's standardiser; temperature: the sampling
+      temperature the model was validated at (``pretrained.json``; 1.0 when absent);
+      scope: the likelihood scope :meth:`log_prob` returns; fps and window from the config;
+      fixed_length: True for a non-causal model (the experiment's ``CAUSAL = False``).
+    """
+
+    def __init__(self, module, config, model, standardizer, *, info: dict | None = None):
+        self.module, self.config, self.model = module, config, model
+        self.standardizer = standardizer
+        info = info or {}
+        self.temperature = float(info.get("temperature", 1.0))
+        scopes = list(getattr(module, "SCOPES", {}) or {})
+        self.scope = info.get("scope") or ("window" if "window" in scopes else scopes[0])
+        self.fps = float(config.data.fps)
+        self.window = int(config.data.window)
+        self.name = getattr(module, "NAME", "model")
+        self.fixed_length = getattr(module, "CAUSAL", True) is False  # samples whole windows
+        self._sample = jax.jit(
+            lambda model, control, key, temperature: module.sample(
+                model, control, key, temperature=temperature
+            )
+        )
+        self._evaluate = jax.jit(module.evaluate)
+
+    @classmethod
+    def from_run(cls, run_dir: str | Path, *, checkpoint: str = "best") -> PretrainedModel:
+        """Load any run directory (trained or exported) as a :class:`PretrainedModel`."""
+        from motionflows.training import load_run, load_standardizer
+
+        run_dir = Path(run_dir)
+        module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
+        info_path = run_dir / INFO_FILE
+        info = json.loads(info_path.read_text()) if info_path.is_file() else {}
+        return cls(module, config, model, load_standardizer(run_dir), info=info)
+
+    def sample(self, control, *, seed: int = 0, temperature: float | None = None) -> np.ndarray:
+        """Poses (B, T, 63) in metres for controls (B, T, 3) in m/frame and rad/frame.
+
+        ``temperature`` defaults to :attr:`temperature`; a fixed-length model (Glow) needs
+        T = :attr:`window`. The same seed gives the same motion.
+        """
+        control = _array(control, (CONTROL_DIM,), "control")
+        temp = self.temperature if temperature is None else float(temperature)
+        if not (np.isfinite(temp) and temp >= 0):
+            raise ValueError(f"temperature must be a finite number >= 0, got {temperature!r}")
+        c = np.asarray(self.standardizer.normalize_control(control), np.float32)
+        x = self._sample(self.model, c, jax.random.key(int(seed)), np.float32(temp))
+        return np.asarray(self.standardizer.denormalize_pose(np.asarray(x)), np.float32)
+
+    def log_prob(self, pose, control) -> np.ndarray:
+        """Log-likelihood (B,) in nats per frame in metres of poses (B, T, 63) metres given
+        controls (B, T, 3), in the scope :attr:`scope` (``"window"``: all T frames; for the
+        VAE-LSTM ``"elbo"``, a lower bound). The standardiser's Jacobian is included:
+        ``(log p_std + F log|d std / d x|) / F`` over the F scored frames."""
+        pose = _array(pose, (POSE_DIM,), "pose")
+        control = _array(control, (CONTROL_DIM,), "control")
+        if pose.shape[:2] != control.shape[:2]:
+            raise ValueError(f"pose {pose.shape} and control {control.shape} must share (B, T)")
+        batch = {
+            "pose": np.asarray(self.standardizer.normalize_pose(pose), np.float32),
+            "control": np.asarray(self.standardizer.normalize_control(control), np.float32),
+        }
+        lls = self._evaluate(self.model, batch, jax.random.key(0))
+        ll = np.asarray(lls[self.scope], np.float64)
+        scopes = getattr(self.module, "SCOPES", {}) or {}
+        frames = pose.shape[1]
+        if self.scope in scopes:
+            frames = scopes[self.scope].scored_frames(pose.shape[1], self.config)
+        ldpf = float(self.standardizer.log_det_per_frame)
+        return ((ll + frames * ldpf) / frames).astype(np.float32)
+
+    def __repr__(self) -> str:
+        return (
+            f"PretrainedModel({self.name}, fps={self.fps:g}, window={self.window}, "
+            f"temperature={self.temperature:g}, scope={self.scope!r})"
+        )
