@@ -15,6 +15,12 @@ windows (B x T frames) given the control. Compile times are measured separately 
 ``memory_stats()`` peak where the backend reports one (GPU/TPU), and the process peak RSS
 (``resource.getrusage``; on CPU that is where the arrays live). Parameters are freshly
 initialised (no data-dependent ActNorm init: it does not change the cost of a step).
+
+Floors (:mod:`motionflows.roofline`), measured in the same run: every time is also given as a
+multiple of the least time this machine could take for it, the step's matrix-product FLOPs
+(counted from its jaxpr) over the measured GEMM peak of its precision, or, when larger, the
+bytes of the weights over the measured memory read bandwidth. The load average is printed at the
+start and at the end (a load above the core count slows every figure).
 """
 
 from __future__ import annotations
@@ -32,17 +38,29 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
+from motionflows import roofline
 from motionflows.bench import describe_machine
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.glow import Glow
 
 PAPER = {"levels": 4, "steps": 32, "hidden": 512, "batch": 64, "window": 80}
-QUICK = {"levels": 2, "steps": 4, "hidden": 64, "batch": 64, "window": 32}
+QUICK = {"levels": 2, "steps": 2, "hidden": 32, "batch": 8, "window": 16}  # a smoke test
 
 
 def machine() -> dict:
     """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
     return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
+
+
+def measure_peaks(quick: bool) -> dict:
+    """This machine's floors, measured now: GEMM peak per precision and memory read bandwidth."""
+    shape = (1024, 512, 1024) if quick else roofline.PAPER_GEMM
+    repeats = 3 if quick else 7
+    return {
+        "gemm": {dt: roofline.gemm_peak(shape, dt, repeats) for dt in ("float32", "bfloat16")},
+        "memory": roofline.memory_bandwidth(1 << 25 if quick else 1 << 29, repeats),
+        "memory_repeats": repeats,
+    }
 
 
 def _device_peak_bytes() -> int | None:
@@ -76,7 +94,7 @@ def _memory(compiled) -> dict:
         return {}
 
 
-def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array) -> dict:
+def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> dict:
     """Time one configuration at one conditioner precision."""
     k_model, k_pose, k_ctrl, k_sample = jax.random.split(key, 4)
     t0 = time.perf_counter()
@@ -108,6 +126,13 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array) -> dict:
         return optax.apply_updates(p, updates), s, value
 
     res: dict = {"dtype": dtype, "params": n_params, "build_s": build_s}
+    peak = peaks["gemm"][dtype]["flops_per_s"]
+    res["weight_bytes"] = roofline.tree_bytes(params)
+    # weights that fit in a cache are read at the cache's speed: read an array of their size
+    res["weight_read"] = roofline.memory_bandwidth(
+        max(res["weight_bytes"], 1 << 20), peaks["memory_repeats"]
+    )
+    res["train_flops"] = roofline.matmul_flops(train_step, params, opt_state, pose, control)
     t0 = time.perf_counter()
     compiled = (
         jax.jit(train_step, donate_argnums=(0, 1)).lower(params, opt_state, pose, control).compile()
@@ -123,6 +148,9 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array) -> dict:
     first_loss = float(run_train())  # warm-up
     res["train_step_s"], res["train_step_s_all"] = _median_time(run_train, repeats)
     res["train_frames_per_s"] = b * t / res["train_step_s"]
+    res["train_step_floor"] = roofline.floor_entry(
+        res["train_step_s"], flops=res["train_flops"], peak_flops_per_s=peak
+    )
     res["train_loss_first_last"] = [first_loss, float(run_train())]
 
     model = nnx.merge(graph, state["p"], rest)
@@ -138,9 +166,66 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array) -> dict:
         lambda: fn(model, control, k_sample), max(repeats, 3)
     )
     res["sample_ms_per_frame"] = 1e3 * res["sample_s"] / (b * t)
+    res["sample_flops"] = roofline.matmul_flops(
+        lambda m, c, k: m.sample(k, c), model, control, k_sample
+    )
+    res["sample_floor"] = roofline.floor_entry(
+        res["sample_s"],
+        flops=res["sample_flops"],
+        peak_flops_per_s=peak,
+        bytes_read=res["weight_bytes"],
+        bandwidth_bytes_per_s=res["weight_read"]["bytes_per_s"],
+    )
     res["device_peak_bytes"] = _device_peak_bytes()
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return res
+
+
+FIGURES = [  # (result key, its floor's key)
+    ("train_step_s", "train_step_floor"),
+    ("sample_s", "sample_floor"),
+]
+
+
+def summary(results: list[dict]) -> list[dict]:
+    """One row per (dtype, figure): the measured seconds, their floor and the multiple."""
+    return [
+        {
+            "dtype": res["dtype"],
+            "figure": name,
+            "value": res[name],
+            "unit": "s",
+            "floor": res[floor_key]["floor_s"],
+            "bound": res[floor_key]["bound"],
+            "multiple_of_floor": res[floor_key]["multiple_of_floor"],
+        }
+        for res in results
+        for name, floor_key in FIGURES
+    ]
+
+
+def summary_text(out: dict) -> str:
+    """The summary as lines for people (stderr; stdout stays one JSON document)."""
+    m, peaks = out["machine"], out["peaks"]
+    lines = [
+        f"{m['cpu']} ({', '.join(m['isa']) or 'no AVX'}), {m['cores']} cores, {m['devices']}",
+        "load average at start {:.2f} / {:.2f} / {:.2f}, at end {:.2f} / {:.2f} / {:.2f}".format(
+            *m["load_average_1_5_15"], *m["load_average_after"]
+        ),
+        "measured peaks: GEMM {} float32 {:.0f} GFLOP/s, bfloat16 {:.0f} GFLOP/s; "
+        "memory read {:.1f} GB/s".format(
+            "x".join(map(str, peaks["gemm"]["float32"]["shape"])),
+            peaks["gemm"]["float32"]["flops_per_s"] / 1e9,
+            peaks["gemm"]["bfloat16"]["flops_per_s"] / 1e9,
+            peaks["memory"]["bytes_per_s"] / 1e9,
+        ),
+    ]
+    for row in out["summary"]:
+        lines.append(
+            f"{row['dtype']:>9} {row['figure']:<13} {row['value']:9.4f} s  "
+            f"floor {row['floor']:9.4f} s ({row['bound']})  x{row['multiple_of_floor']:.2f}"
+        )
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
@@ -149,6 +234,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dtypes", default="float32,bfloat16")
     ap.add_argument("--repeats", type=int, default=None, help="timed training steps")
     args = ap.parse_args(argv)
+    dtypes = [d.strip() for d in args.dtypes.split(",")]
+    if not dtypes or any(d not in ("float32", "bfloat16") for d in dtypes):
+        ap.error(f"--dtypes takes float32 and/or bfloat16, comma-separated; got {args.dtypes!r}")
     cfg = QUICK if args.quick else PAPER
     repeats = args.repeats or (5 if args.quick else 2)
     out = {
@@ -165,12 +253,16 @@ def main(argv=None) -> int:
         "machine": machine(),
         "results": [],
     }
+    out["peaks"] = measure_peaks(args.quick)
+    print(json.dumps({"peaks": out["peaks"]}), file=sys.stderr, flush=True)
     key = jax.random.key(0)
-    for dtype in args.dtypes.split(","):
-        out["results"].append(bench(cfg, dtype.strip(), repeats, key))
+    for dtype in dtypes:
+        out["results"].append(bench(cfg, dtype, repeats, key, out["peaks"]))
         print(json.dumps(out["results"][-1]), file=sys.stderr, flush=True)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     out["machine"]["load_average_after"] = list(os.getloadavg())
+    out["summary"] = summary(out["results"])
+    print(summary_text(out), file=sys.stderr)
     print(json.dumps(out, indent=2))
     return 0
 

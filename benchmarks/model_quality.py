@@ -35,19 +35,31 @@ def _parse_floats(text: str) -> list[float]:
     return [float(t) for t in text.split(",") if t.strip()]
 
 
-def score(run_dir: Path, dataset, temperatures, *, windows: int, seed: int, sample_windows: int):
-    """Rows of motion metrics (per temperature) and the likelihood of the latest checkpoint."""
+def score(
+    run_dir: Path,
+    dataset,
+    temperatures,
+    *,
+    windows: int,
+    seed: int,
+    sample_windows: int,
+    split: str = "test",
+    checkpoint: str = "latest",
+):
+    """Rows of motion metrics (per temperature) and the likelihood of a checkpoint, on the
+    windows and controls of ``split``."""
     import jax
 
-    exp, config, model, _ = load_run(run_dir, checkpoint="latest", dataset=dataset)
+    exp, config, model, _ = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
     key = jax.random.key(seed)
     lik = bench.score_likelihood(
-        exp, model, config, dataset, "test", limit=windows, key=key, num_bootstrap=200
+        exp, model, config, dataset, split, limit=windows, key=key, num_bootstrap=200
     )
-    idx = bench._pick(dataset.test, sample_windows, seed=2)
-    _, ctrl = bench._standardized(dataset, dataset.test, idx)
-    gt_m = np.asarray(dataset.test.pose, np.float32)[idx]
-    control_m = np.asarray(dataset.test.control, np.float32)[idx]
+    part = dataset.split(split)
+    idx = bench._pick(part, sample_windows, seed=2)
+    _, ctrl = bench._standardized(dataset, part, idx)
+    gt_m = np.asarray(part.pose, np.float32)[idx]
+    control_m = np.asarray(part.control, np.float32)[idx]
     fps = float(config.data.fps)
     st = dataset.standardizer
     rows = []
@@ -68,7 +80,7 @@ def score(run_dir: Path, dataset, temperatures, *, windows: int, seed: int, samp
     nll = {s: r["test"]["nats_per_frame_metres"] if "test" in r else r["nats_per_frame_metres"]
            for s, r in lik.items()}  # fmt: skip
     gt = bench.motion_metrics(gt_m, control_m, gt_m, None, fps)
-    gt["diversity"] = bench.natural_diversity_of(dataset.test)
+    gt["diversity"] = bench.natural_diversity_of(part)
     return rows, nll, gt
 
 
@@ -84,6 +96,8 @@ def main(argv=None) -> int:
     p.add_argument("--windows", type=int, default=256, help="test windows scored")
     p.add_argument("--sample-windows", type=int, default=64, help="test controls sampled")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--on", default="test", choices=["val", "test"], help="split scored")
+    p.add_argument("--run", default=None, help="score this finished run only (no training)")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -102,9 +116,21 @@ def main(argv=None) -> int:
     config = apply_overrides(config, args.set)
     out = Path(args.out)
     run_dir = out / "run"
-    dataset = config.data.load()
     temps = _parse_floats(args.temperatures)
     results = []
+    if args.run:  # score an existing run (its own data config) at its best checkpoint
+        _, run_config, _, dataset = load_run(args.run)
+        rows, nll, gt = score(Path(args.run), dataset, temps, windows=args.windows,
+                              seed=args.seed, sample_windows=args.sample_windows,
+                              split=args.on, checkpoint="best")  # fmt: skip
+        steps = int(run_config.train.steps)
+        results = [{"steps": steps, "train_s": None, "nll": nll, **row} for row in rows]
+        for rec in results:
+            print(json.dumps(rec), flush=True)
+        out.mkdir(parents=True, exist_ok=True)
+        write_report(out, results, gt, " ".join(sys.argv))
+        return 0
+    dataset = config.data.load()
     for steps in [int(s) for s in args.steps.split(",")]:
         t0 = time.perf_counter()
         cfg = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
@@ -119,6 +145,7 @@ def main(argv=None) -> int:
             windows=args.windows,
             seed=args.seed,
             sample_windows=args.sample_windows,
+            split=args.on,
         )
         for row in rows:
             rec = {"steps": steps, "train_s": train_s, "nll": nll, **row}

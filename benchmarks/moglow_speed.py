@@ -5,6 +5,12 @@ Paper configuration by default (63 + 3 dims, tau 10, K 16, 2 x 512 LSTM, batch 1
 configuration (for CI / a smoke test). Reference (official PyTorch code, 2-core AVX-512 CPU):
 12.6 s per training step, 49.5 ms/frame at batch 1, 78.5 ms per frame-step at batch 64.
 
+Every time is also given as a multiple of its floor on this machine, measured in the same run
+(:mod:`motionflows.roofline`): the matmul FLOPs of the step (counted from its jaxpr) over the
+measured GEMM peak of its precision, or for sampling, when larger, the bytes of the weights
+read per frame over the measured memory read bandwidth. The load average is printed at the start
+and at the end: on a shared machine a load above the core count makes every time slower.
+
     python benchmarks/moglow_speed.py [--quick] [--dtypes float32,bfloat16] [--repeats N]
 """
 
@@ -23,6 +29,7 @@ import jax.numpy as jnp
 import optax
 from flax import nnx
 
+from motionflows import roofline
 from motionflows.bench import describe_machine
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
@@ -37,14 +44,14 @@ PAPER = {
     "window": 80,
     "sample_frames": 60,
 }
-QUICK = {
-    "K": 4,
-    "hidden": 64,
+QUICK = {  # a smoke test: seconds, not a speed figure
+    "K": 2,
+    "hidden": 32,
     "layers": 1,
     "tau": 10,
-    "batch": 16,
-    "window": 40,
-    "sample_frames": 20,
+    "batch": 8,
+    "window": 20,
+    "sample_frames": 8,
 }
 REFERENCE = {"train_step_s": 12.6, "sample_ms_per_frame_b1": 49.5, "sample_ms_per_frame_b64": 78.5}
 TARGETS = {
@@ -60,6 +67,27 @@ def machine() -> dict:
     return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
 
 
+def measure_peaks(quick: bool) -> dict:
+    """This machine's floors, measured now: GEMM peak per precision and memory read bandwidth."""
+    shape = (1024, 512, 1024) if quick else roofline.PAPER_GEMM
+    repeats = 3 if quick else 7
+    return {
+        "gemm": {dt: roofline.gemm_peak(shape, dt, repeats) for dt in ("float32", "bfloat16")},
+        "memory": roofline.memory_bandwidth(1 << 25 if quick else 1 << 29, repeats),
+        "memory_repeats": repeats,
+    }
+
+
+def _device_peak_bytes() -> int | None:
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - CPU backends may not implement it
+        return None
+    if not stats:
+        return None
+    return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
+
+
 def _time(fn, repeats: int) -> list[float]:
     out = []
     for _ in range(repeats):
@@ -69,7 +97,7 @@ def _time(fn, repeats: int) -> list[float]:
     return out
 
 
-def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
+def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1) -> dict:
     cd = None if dtype == "float32" else dtype
     k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
     model = MoGlow(
@@ -102,7 +130,13 @@ def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
         updates, s = opt.update(grads, s, p)
         return optax.apply_updates(p, updates), s, value
 
-    res: dict = {"dtype": dtype}
+    peak = peaks["gemm"][dtype]["flops_per_s"]
+    weight_bytes = roofline.tree_bytes(params)
+    # weights that fit in a cache are read at the cache's speed: read an array of their size
+    read = roofline.memory_bandwidth(max(weight_bytes, 1 << 20), peaks["memory_repeats"])
+    bandwidth = read["bytes_per_s"]
+    res: dict = {"dtype": dtype, "weight_bytes": weight_bytes, "weight_read": read}
+    res["train_flops"] = roofline.matmul_flops(train_step, params, opt_state, pose, control, k_drop)
     t0 = time.perf_counter()
     compiled = jax.jit(train_step).lower(params, opt_state, pose, control, k_drop).compile()
     res["train_compile_s"] = time.perf_counter() - t0
@@ -127,6 +161,9 @@ def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
         times.append(time.perf_counter() - t0)
     res["train_step_s"] = statistics.median(times)
     res["train_step_s_all"] = times
+    res["train_step_floor"] = roofline.floor_entry(
+        res["train_step_s"], flops=res["train_flops"], peak_flops_per_s=peak
+    )
     res["train_loss"] = float(value)
 
     n = cfg["sample_frames"]
@@ -139,6 +176,17 @@ def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
         fn(model, ctrl, k_sample).block_until_ready()
         st = _time(lambda fn=fn, ctrl=ctrl: fn(model, ctrl, k_sample), max(repeats, 3))
         res[f"sample_ms_per_frame_b{batch}"] = 1e3 * statistics.median(st) / n
+        # floor per frame: the frame's matmuls at the peak, or all weights read once
+        frame_flops = roofline.matmul_flops(lambda m, c, k: m.sample(k, c), model, ctrl, k_sample)
+        floor = dict(
+            flops=frame_flops / n,
+            peak_flops_per_s=peak,
+            bytes_read=weight_bytes,
+            bandwidth_bytes_per_s=bandwidth,
+        )
+        res[f"sample_floor_b{batch}"] = roofline.floor_entry(
+            res[f"sample_ms_per_frame_b{batch}"] / 1e3, **floor
+        )
         # streaming: one jitted stream_step per frame from the host (game-loop latency)
         step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k))
         stream = model.init_stream(batch)
@@ -152,8 +200,69 @@ def bench(cfg: dict, dtype: str, repeats: int, key, warmup: int = 1) -> dict:
             lat.append(time.perf_counter() - t0)
         res[f"stream_step_ms_b{batch}_median"] = 1e3 * statistics.median(lat)
         res[f"stream_step_ms_b{batch}_p95"] = 1e3 * sorted(lat)[int(0.95 * (len(lat) - 1))]
+        res[f"stream_step_floor_b{batch}"] = roofline.floor_entry(
+            res[f"stream_step_ms_b{batch}_median"] / 1e3, **floor
+        )
+        stream_floor = res[f"stream_step_floor_b{batch}"]
+        stream_floor["multiple_of_floor_p95"] = (
+            res[f"stream_step_ms_b{batch}_p95"] / 1e3 / stream_floor["floor_s"]
+        )
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    res["device_peak_bytes"] = _device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res
+
+
+FIGURES = [  # (result key, its floor's key, unit scale from seconds, unit)
+    ("train_step_s", "train_step_floor", 1.0, "s"),
+    ("sample_ms_per_frame_b1", "sample_floor_b1", 1e3, "ms"),
+    ("sample_ms_per_frame_b64", "sample_floor_b64", 1e3, "ms"),
+    ("stream_step_ms_b1_median", "stream_step_floor_b1", 1e3, "ms"),
+    ("stream_step_ms_b64_median", "stream_step_floor_b64", 1e3, "ms"),
+]
+
+
+def summary(results: list[dict]) -> list[dict]:
+    """One row per (dtype, figure): the measured value, its floor and the multiple."""
+    rows = []
+    for res in results:
+        for name, floor_key, scale, unit in FIGURES:
+            floor = res[floor_key]
+            rows.append(
+                {
+                    "dtype": res["dtype"],
+                    "figure": name,
+                    "value": res[name],
+                    "unit": unit,
+                    "floor": floor["floor_s"] * scale,
+                    "bound": floor["bound"],
+                    "multiple_of_floor": floor["multiple_of_floor"],
+                }
+            )
+    return rows
+
+
+def summary_text(out: dict) -> str:
+    """The summary as lines for people (stderr; stdout stays one JSON document)."""
+    m, peaks = out["machine"], out["peaks"]
+    lines = [
+        f"{m['cpu']} ({', '.join(m['isa']) or 'no AVX'}), {m['cores']} cores, {m['devices']}",
+        "load average at start {:.2f} / {:.2f} / {:.2f}, at end {:.2f} / {:.2f} / {:.2f}".format(
+            *m["load_average_1_5_15"], *m["load_average_after"]
+        ),
+        "measured peaks: GEMM {} float32 {:.0f} GFLOP/s, bfloat16 {:.0f} GFLOP/s; "
+        "memory read {:.1f} GB/s".format(
+            "x".join(map(str, peaks["gemm"]["float32"]["shape"])),
+            peaks["gemm"]["float32"]["flops_per_s"] / 1e9,
+            peaks["gemm"]["bfloat16"]["flops_per_s"] / 1e9,
+            peaks["memory"]["bytes_per_s"] / 1e9,
+        ),
+    ]
+    for row in out["summary"]:
+        lines.append(
+            f"{row['dtype']:>9} {row['figure']:<27} {row['value']:9.3f} {row['unit']:<2}  "
+            f"floor {row['floor']:9.3f} ({row['bound']})  x{row['multiple_of_floor']:.2f}"
+        )
+    return "\n".join(lines)
 
 
 def main(argv=None) -> int:
@@ -163,6 +272,9 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="timed training steps")
     ap.add_argument("--warmup", type=int, default=1, help="untimed training steps first")
     args = ap.parse_args(argv)
+    dtypes = [d.strip() for d in args.dtypes.split(",")]
+    if not dtypes or any(d not in ("float32", "bfloat16") for d in dtypes):
+        ap.error(f"--dtypes takes float32 and/or bfloat16, comma-separated; got {args.dtypes!r}")
     cfg = QUICK if args.quick else PAPER
     repeats = args.repeats or (3 if args.quick else 2)
     out = {
@@ -179,11 +291,16 @@ def main(argv=None) -> int:
         "targets": TARGETS,
         "results": [],
     }
+    out["peaks"] = measure_peaks(args.quick)
+    print(json.dumps({"peaks": out["peaks"]}), file=sys.stderr, flush=True)
     key = jax.random.key(0)
-    for dtype in args.dtypes.split(","):
-        out["results"].append(bench(cfg, dtype.strip(), repeats, key, args.warmup))
+    for dtype in dtypes:
+        out["results"].append(bench(cfg, dtype, repeats, key, out["peaks"], args.warmup))
         print(json.dumps(out["results"][-1]), file=sys.stderr, flush=True)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    out["machine"]["load_average_after"] = list(os.getloadavg())
+    out["summary"] = summary(out["results"])
+    print(summary_text(out), file=sys.stderr)
     print(json.dumps(out, indent=2))
     return 0
 

@@ -110,11 +110,11 @@ PRESETS: dict[str, Config] = {
         iwae_samples=(1, 10, 100),
     ),
     # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md): the quick
-    # model trained 8x longer with a decaying learning rate.
+    # model trained 4x longer with a decaying learning rate.
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10),
         train=TrainConfig(
-            steps=12000, batch_size=32, lr=1e-3, warmup_steps=100, schedule="cosine",
+            steps=6000, batch_size=32, lr=1e-3, warmup_steps=100, schedule="cosine",
             min_lr_ratio=0.05, eval_every=1000, eval_batches=4, log_every=50,
             checkpoint_every=1000,
         ),

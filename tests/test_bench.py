@@ -155,7 +155,7 @@ def test_motion_quality_and_speed(smoke):
     _, results = smoke
     gt = results["ground_truth"]["motion"]
     assert gt["fd_pose"] == pytest.approx(0.0, abs=1e-6)
-    assert gt["pose_error"] == 0.0 and gt["diversity"] is None
+    assert gt["pose_error"] == 0.0 and gt["diversity"] > 0  # the data's natural diversity
     assert 0 <= gt["foot_sliding"] < 1.0  # real feet barely slide (m/s)
     assert 0 < gt["contact_rate"] <= 1
     for name in MODELS:

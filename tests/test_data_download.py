@@ -22,19 +22,28 @@ def test_git_blob_sha1_known_value():
     assert COMMIT in BASE_URL and BASE_URL.startswith("https://raw.githubusercontent.com/")
 
 
+FOLDERS = ("bandai_locomotion_dev", "bandai_locomotion_extra")
+
+
 def test_packaged_manifest_matches_shared_copy():
     rows = bandai_manifest()
-    assert len(rows) == 249 and {"file", "source_path", "git_blob_sha1"} <= set(rows[0])
-    shared = SHARED / "bandai_locomotion_dev" / "manifest.csv"
-    if shared.exists():
-        assert bandai_manifest(shared) == rows
+    assert len(rows) == 249 + 496 and {"file", "source_path", "git_blob_sha1"} <= set(rows[0])
+    shared = [SHARED / f / "manifest.csv" for f in FOLDERS]
+    if all(p.exists() for p in shared):  # the dev rows, then the extra takes' rows
+        assert bandai_manifest(shared[0]) + bandai_manifest(shared[1]) == rows
 
 
 @pytest.fixture()
-def server():
-    if not (SHARED / "bandai_locomotion_dev").is_dir():
+def server(tmp_path_factory):
+    """A flat mirror (every file at the top) of the dev and extra folders."""
+    if not all((SHARED / f).is_dir() for f in FOLDERS):
         pytest.skip("../shared/data not present")
-    handler = functools.partial(_Quiet, directory=str(SHARED))
+    mirror = tmp_path_factory.mktemp("mirror") / "bandai_locomotion_dev"
+    mirror.mkdir()
+    for folder in FOLDERS:
+        for bvh in (SHARED / folder).glob("*.bvh"):
+            (mirror / bvh.name).symlink_to(bvh.resolve())
+    handler = functools.partial(_Quiet, directory=str(mirror.parent))
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
     thread.start()

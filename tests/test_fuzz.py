@@ -14,6 +14,7 @@ import errno
 import hashlib
 import http.server
 import json
+import logging
 import os
 import resource
 import shutil
@@ -373,6 +374,8 @@ def test_missing_standardizer_and_bad_flags_leave_the_run_alone(run_copy, tmp_pa
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
     for argv, needles in (
+        (["sample", good, "--seconds", "1e9"], ["--seconds", "3600"]),
+        (["sample", good, "--num", "100000000"], ["--num", "1024"]),
         (["sample", good, "--temperature", "-1"], ["--temperature", "-1"]),
         (["sample", good, "--temperature", "nan"], ["--temperature", "nan"]),
         (["sample", good, "--out", a_file, "--seconds", 1], ["--out", "is a file"]),
@@ -386,6 +389,18 @@ def test_missing_standardizer_and_bad_flags_leave_the_run_alone(run_copy, tmp_pa
     np.savez(tmp_path / "clip.npz", pose=np.zeros((3, 63)), control=np.zeros((3, 3)))
     code, out = run_cli(capsys, "render", tmp_path / "clip.npz", "--out", a_file)
     assert_one_clear_line(code, out, "--out", "is a file")
+    code, out = run_cli(capsys, "bench", "--out", a_file)
+    assert_one_clear_line(code, out, "--out", "is a file")
+    code, out = run_cli(capsys, "eval", good, "--batch-size", 0)
+    assert_one_clear_line(code, out, "--batch-size")
+    for pose, control, needle in (
+        (np.zeros((3, 5)), np.zeros((3, 3)), "(T, 63)"),
+        (np.zeros((0, 63)), np.zeros((0, 3)), "T >= 1"),
+        (np.full((3, 63), np.nan), np.zeros((3, 3)), "NaN"),
+    ):
+        np.savez(tmp_path / "bad.npz", pose=pose, control=control)
+        code, out = run_cli(capsys, "render", tmp_path / "bad.npz", "--out", tmp_path / "r")
+        assert_one_clear_line(code, out, "bad.npz", needle)
     assert snapshot(good) == before and a_file.read_text() == "x"
 
 
@@ -416,7 +431,7 @@ def _state(x: float) -> dict:
     return {"params": {"w": jnp.full((4,), x)}}
 
 
-def test_truncated_latest_checkpoint_falls_back_to_the_previous(tmp_path, capsys):
+def test_truncated_latest_checkpoint_falls_back_to_the_previous(tmp_path, capsys, caplog):
     ckpt = Checkpointer(tmp_path / "ck", keep=3)
     for step in (1, 2):
         ckpt.save(step, _state(float(step)), {"step": step})
@@ -430,6 +445,7 @@ def test_truncated_latest_checkpoint_falls_back_to_the_previous(tmp_path, capsys
     assert meta["step"] == 1 and float(state["params"]["w"][0]) == 1.0
     err = capsys.readouterr().err
     assert "[2]" in err and "using step 1" in err
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]  # no orbax noise
 
 
 def test_full_disk_during_a_checkpoint_is_one_line(tmp_path, monkeypatch):

@@ -89,6 +89,16 @@ def test_ramp_is_a_first_order_approach():
     np.testing.assert_allclose(applied, target * (1 - math.exp(-1)), rtol=1e-6)
 
 
+def test_cli_play_reports_bad_input_in_one_line(capsys):
+    from motionflows.cli import main
+
+    assert main(["play", "/no/such/run"]) == 2
+    err = capsys.readouterr().err
+    assert "not a run directory" in err and "Traceback" not in err
+    assert main(["play", "/no/such/run", "--port", "70000"]) == 2
+    assert "--port" in capsys.readouterr().err
+
+
 # -------------------------------------------------------------------------- browser
 
 
@@ -391,4 +401,5 @@ def test_closing_the_page_stops_generation_and_ctrl_c_stops_the_server(page, ser
 
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=15) == 0
-    assert "stopped" in log.read_text()
+    text = log.read_text()
+    assert "stopped" in text and "Traceback" not in text, text[-3000:]

@@ -81,7 +81,7 @@ def _turning(clip):
 def test_drawing_follows_the_integrated_path(clip, tmp_path):
     control = _turning(clip).astype(np.float64)
     pose, truth = clip.pose.astype(np.float64), clip.pose[::-1].astype(np.float64)
-    stage, n = render._stage(pose, control, truth, "t", None, 100)
+    stage, n = render._stage(pose, control, truth, "t", None, 100, 20.0)
     root = np.asarray(integrate_root(control)[0])
     world = to_global(pose, control).reshape(n, -1, 3)
     world_truth = to_global(truth, control).reshape(n, -1, 3)
@@ -92,10 +92,20 @@ def test_drawing_follows_the_integrated_path(clip, tmp_path):
         ax = stage.panels[0]["ax"]
         assert np.mean(ax.get_xlim()) == pytest.approx(root[t, 0])  # camera follows the root
         assert np.mean(ax.get_zlim()) == pytest.approx(root[t, 2])
-    stage.frame(0, 20.0)
-    screen_x = [proj3d.proj_transform(*p, ax.get_proj())[0] for p in root[[0, n // 2, -1]]]
-    assert screen_x[0] < screen_x[1] < screen_x[2]  # walks to the right of the picture
+        ahead = root[t + 3] if t + 3 < n else 2 * root[t] - root[t - 3]
+        x_now, x_ahead = (proj3d.proj_transform(*p, ax.get_proj())[0] for p in (root[t], ahead))
+        assert x_now < x_ahead  # the camera turns with the path: walks to the right
     np.testing.assert_allclose(world_joints(pose, control), world)
+
+
+def test_camera_swings_round_a_turn_to_stay_on_the_walkers_right():
+    control = np.tile([0.06, 0.0, np.pi / 40], (80, 1))  # 4 s, 270 degrees to the left
+    root, yaw = (np.asarray(a) for a in integrate_root(control))
+    azimuth = np.radians(render._camera_azimuths(yaw, 20.0))
+    step = np.diff(root, axis=0)
+    right = np.stack([-step[:, 2], step[:, 0]], 1) / np.linalg.norm(step, axis=1)[:, None]
+    camera = np.stack([np.sin(azimuth), np.cos(azimuth)], 1)[:-1]  # towards (x, z)
+    assert np.all((camera * right).sum(1) > 0.2)  # a fixed camera would end up at -1
 
 
 def test_contact_marks_show_a_dragged_foot_as_a_streak(clip):

@@ -69,9 +69,7 @@ def test_folder_of_the_test_takes_scores_as_the_test_split(tiny_run, tmp_path):
     for a, b in zip(split, rows, strict=True):
         assert a["scope"] == b["scope"] and a["windows"] == b["windows"]
         assert b["nats_per_frame_metres"] == pytest.approx(a["nats_per_frame_metres"], abs=1e-5)
-        assert b["bits_per_frame_std"] == pytest.approx(
-            a["bits_per_frame_std"], abs=1e-5
-        )
+        assert b["bits_per_frame_std"] == pytest.approx(a["bits_per_frame_std"], abs=1e-5)
     saved = json.loads((run_dir / "eval_unseen.json").read_text())
     assert saved["data"] == f"bvh:{folder}" and sorted(saved["takes"]) == [n[:-4] for n in names]
 
@@ -135,3 +133,29 @@ def test_bad_takes_give_one_clear_line(tiny_run, tmp_path, capsys):
         load_takes(f"bvh:{short}", fps=20.0, window=200, hop=10)
     code = cli.main(["eval", str(run_dir), "--label", "x"])
     assert code == 2 and "go with --data" in capsys.readouterr().err
+
+
+@needs_data
+def test_bench_scores_every_table_on_the_test_data(tmp_path):
+    from motionflows.bench import run_benchmark
+
+    folder = _folder(tmp_path / "unseen", TAKES[:4])
+    takes = load_takes(f"bvh:{folder}", fps=20.0, window=32, hop=8)
+    results = run_benchmark(
+        data="synthetic",
+        models=("gaussian",),
+        budget="smoke",
+        out=tmp_path / "bench",
+        runs_dir=tmp_path / "runs",
+        gifs=False,
+        progress=lambda *a: None,
+        test_data=f"bvh:{folder}",
+    )
+    test = results["test_data"]
+    assert test["spec"] == f"bvh:{folder}" and test["windows"] == len(takes.windows)
+    assert sorted(test["takes"]) == sorted(n[:-4] for n in TAKES[:4])
+    lik = results["models"]["gaussian"]["likelihood"]["window"]["test"]
+    assert lik["windows"] == len(takes.windows)  # scored on the takes, not the split
+    saved = json.loads((tmp_path / "bench" / "results.json").read_text())
+    assert saved["test_data"]["spec"] == f"bvh:{folder}"
+    assert "Test data: `bvh:" in (tmp_path / "bench" / "BENCHMARK.md").read_text()

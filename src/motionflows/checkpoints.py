@@ -116,13 +116,19 @@ class Checkpointer:
             )
             return ocp.CheckpointManager((self.directory / sub).absolute(), options=opts)
 
-        self.managers = {"latest": manager("latest", max(1, keep)), "best": manager("best", 1)}
+        with _quiet_orbax():  # a damaged step is reported by restore(), in one line
+            self.managers = {
+                "latest": manager("latest", max(1, keep)),
+                "best": manager("best", 1),
+            }
 
     def steps(self, which: str = "latest") -> list[int]:
-        return list(self.managers[which].all_steps())
+        with _quiet_orbax():
+            return list(self.managers[which].all_steps())
 
     def latest_step(self, which: str = "latest") -> int | None:
-        return self.managers[which].latest_step()
+        with _quiet_orbax():
+            return self.managers[which].latest_step()
 
     def save(self, step: int, state: dict[str, Any], meta: dict, *, which: str = "latest"):
         """Save ``state`` (dict of pytrees) and JSON ``meta`` at ``step``; refuses NaN/inf."""
@@ -168,7 +174,9 @@ class Checkpointer:
         ocp = self._ocp
         mgr = self.managers[which]
         # an explicit step must load; otherwise the newest complete checkpoint is used
-        candidates = sorted(mgr.all_steps(), reverse=True) if step is None else [step]
+        with _quiet_orbax():
+            every = mgr.all_steps()
+        candidates = sorted(every, reverse=True) if step is None else [step]
         if not candidates:
             raise FileNotFoundError(f"no {which} checkpoint in {self.directory}")
         args = ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
@@ -197,7 +205,6 @@ class Checkpointer:
                 f"are damaged or incomplete; using step {candidate}, the newest complete one",
                 file=sys.stderr,
             )
-        self.restored_step = candidate
         flat = got["state"]
         state = {
             name: unflatten(template, flat.get(name, {}), name)

@@ -35,6 +35,12 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
+MAX_SAMPLES = 1024
+"""Most samples one ``sample`` command draws (memory grows with --num x frames)."""
+MAX_SAMPLE_SECONDS = 3600.0
+"""Longest ``sample --seconds`` (one hour of motion per sample)."""
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
     """Warnings reach people as one line each, without the source line that raised them."""
     print(f"warning: {message}", file=file or sys.stderr)
@@ -67,8 +73,16 @@ def cmd_eval(args) -> int:
     from motionflows import runs, training
 
     run_dir = runs.resolve_run_dir(args.run_dir)
+    if args.batch_size is not None and args.batch_size < 1:
+        raise RunError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.data is None and (args.label or args.skeleton):
         raise RunError("--label and --skeleton go with --data (other takes to score)")
+    if args.out:
+        out = _folder(args.out, "--out")
+    elif str(args.run_dir).startswith("pretrained:"):  # never write into the package
+        out = Path("evals") / str(args.run_dir).split(":", 1)[1]
+    else:
+        out = run_dir
     training.evaluate_run(
         run_dir,
         args.split,
@@ -77,8 +91,9 @@ def cmd_eval(args) -> int:
         skeleton=args.skeleton or "bandai",
         checkpoint=args.checkpoint,
         batch_size=args.batch_size,
+        out_dir=out,
     )
-    written = sorted(run_dir.glob("eval_*.json"), key=lambda p: p.stat().st_mtime)
+    written = sorted(out.glob("eval_*.json"), key=lambda p: p.stat().st_mtime)
     print(f"wrote {written[-1]}", file=sys.stderr)
     return 0
 
@@ -113,8 +128,13 @@ def cmd_sample(args) -> int:
     from motionflows.pretrained.model import INFO_FILE
 
     run_dir = runs.resolve_run_dir(args.run_dir)
-    if args.num < 1 or (args.seconds is not None and args.seconds <= 0):
-        raise RunError("--num must be >= 1 and --seconds > 0")
+    if not 1 <= args.num <= MAX_SAMPLES or (
+        args.seconds is not None and not 0 < args.seconds <= MAX_SAMPLE_SECONDS
+    ):
+        raise RunError(
+            f"--num must be 1 .. {MAX_SAMPLES} and --seconds in (0, {MAX_SAMPLE_SECONDS:g}] "
+            f"(got --num {args.num}, --seconds {args.seconds})"
+        )
     module, config, model, _ = training.load_run(
         run_dir, checkpoint=args.checkpoint, load_data=False
     )
@@ -123,7 +143,8 @@ def cmd_sample(args) -> int:
     temperature = args.temperature
     if temperature is None:  # the temperature the model was validated at, else 1
         info = run_dir / INFO_FILE
-        temperature = json.loads(info.read_text()).get("temperature", 1.0) if info.is_file() else 1.0
+        saved = json.loads(info.read_text()) if info.is_file() else {}
+        temperature = saved.get("temperature", 1.0)
     temperature = float(temperature)
     if not (np.isfinite(temperature) and temperature >= 0):
         raise RunError(
@@ -163,9 +184,15 @@ def cmd_sample(args) -> int:
         for i in range(args.num):
             title = f"{module.NAME} {name} #{i}" + ("" if truth is None else " | ground truth")
             gif = render.animate(
-                pose[i], control, out / f"{stem}_{i}.gif", fps=fps, title=title, compare=truth
+                pose[i],
+                control,
+                out / f"{stem}_{i}.gif",
+                fps=fps,
+                title=title,
+                compare=truth,
+                still=out / f"{stem}_{i}.png",
             )
-            print(f"wrote {gif}", file=sys.stderr)
+            print(f"wrote {gif} and its still {gif.with_suffix('.png').name}", file=sys.stderr)
         render.plot_controls(control, out / f"{stem}_control.png", fps, title=name)
     return 0
 
@@ -215,6 +242,23 @@ def cmd_render(args) -> int:
         pose, control = np.asarray(data["pose"]), np.asarray(data["control"])
         fps = float(data["fps"]) if "fps" in data else args.fps
     poses = pose[None] if pose.ndim == 2 else pose
+    if (
+        poses.ndim != 3
+        or poses.shape[-1] != 63
+        or control.shape[-2:] != (poses.shape[1], 3)
+        or control.ndim not in (2, 3)
+        or (control.ndim == 3 and len(control) != len(poses))
+        or 0 in poses.shape
+    ):
+        raise RunError(
+            f"{path}: 'pose' must be (T, 63) or (N, T, 63) metres and 'control' (T, 3) or "
+            f"(N, T, 3) with the same T >= 1; got pose {pose.shape}, control {control.shape}"
+        )
+    for name, arr in (("pose", poses), ("control", control)):
+        if not np.issubdtype(arr.dtype, np.number) or not np.all(np.isfinite(arr)):
+            raise RunError(f"{path}: '{name}' must hold finite numbers (it has NaN, inf or text)")
+    if not (np.isfinite(fps) and 0 < fps <= 1000):
+        raise RunError(f"{path}: fps must be in (0, 1000], got {fps:g}")
     controls = (
         control if control.ndim == 3 else np.broadcast_to(control, (len(poses), *control.shape))
     )
@@ -315,6 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(the run's standardiser, window and fps; writes eval_<label>.json)",
     )
     p.add_argument("--label", default=None, help="name of the --data output (default: folder)")
+    p.add_argument("--out", default=None, help="folder of eval_*.json (default: the run)")
     p.add_argument("--skeleton", default=None, help="skeleton mapping of --data BVH files")
     p.add_argument("--checkpoint", default="best", choices=["best", "latest"])
     p.add_argument("--batch-size", type=int, default=None)

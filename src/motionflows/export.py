@@ -82,6 +82,9 @@ def export_run(
         target.save(step, {"params": params, "rest": rest}, meta, which="best")
     finally:
         target.close()
+    latest = out / "checkpoints" / "latest"
+    if latest.is_dir() and not any(latest.iterdir()):  # the manager's empty folder
+        latest.rmdir()
     info = {"experiment": module.NAME, "step": step, "checkpoint": which}
     if temperature is not None:
         info["temperature"] = float(temperature)

@@ -7,7 +7,8 @@ on it (:func:`motionflows.evaluation.motion.integrate_root` / ``to_global``), so
 and its ground truth driven by the same control walk the same path.
 
 An animation frame is a matplotlib 3D view (mplot3d, perspective) that follows the root,
-seen from a fixed direction across the clip's walking direction, slightly from above:
+22 degrees above the floor, looking at the character from its right-front (it swings with
+the character's facing, smoothed, see :func:`_camera_azimuths`):
 
 * the floor y = 0 as a 0.5 m grid, the walked path (green), the skeleton's shadow on the
   floor (grey: a floating foot is the gap between a foot and its shadow);
@@ -46,7 +47,6 @@ from motionflows.evaluation.motion import foot_contacts, integrate_root, to_glob
 _COLORS = ["tab:blue" if n.startswith("Left") else "tab:red" if n.startswith("Right")
            else "black" for n in JOINT_NAMES]  # fmt: skip
 _BONES = [(p, j) for j, p in enumerate(PARENTS) if p >= 0]
-_COMPARE_ALPHA = 0.45
 _GRID_STEP = 0.5  # m between floor grid lines
 _VIEW_HALF = 2.0  # m: the camera shows the root +- this on the floor
 _VIEW_HEIGHT = 1.5  # m
@@ -118,16 +118,17 @@ def _contact_marks(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(off, np.nan, low), np.where(off, np.nan, prints)
 
 
-def _camera_azimuth(root: np.ndarray) -> float:
-    """Azimuth (degrees, matplotlib's with y up) of a camera looking across the walking
-    direction from the walker's right-front: 70 degrees right of the overall travel direction
-    (start to end of the path; +z when the path is shorter than 0.5 m), so strides are seen
-    nearly side-on and the walker moves to the right of the picture."""
-    travel = root[-1] - root[0]
-    heading = np.arctan2(travel[0], travel[2]) if np.hypot(travel[0], travel[2]) > 0.5 else 0.0
+def _camera_azimuths(yaw: np.ndarray, fps: float) -> np.ndarray:
+    """Per-frame camera azimuth (T,) degrees (matplotlib's, with y up) from the root's yaw
+    (T,) radians: the camera looks at the character from its right-front, 70 degrees right of
+    its facing, so strides are seen nearly side-on and a forward walk moves to the right of
+    the picture (a backward walk to the left). The yaw is averaged over +-1 s so the camera
+    swings smoothly through turns and ignores the root's jitter."""
+    w = max(1, int(round(fps)))
+    smooth = np.convolve(np.pad(yaw, w, mode="edge"), np.ones(2 * w + 1) / (2 * w + 1), "valid")
     # with vertical_axis="y" matplotlib's azimuth a puts the camera towards (x, z) =
     # (sin a, cos a) from the centre, i.e. it is a yaw like the control's turn
-    return float(np.degrees(heading - np.radians(70.0)))
+    return np.degrees(smooth - np.radians(70.0))
 
 
 def _finite(points: np.ndarray) -> np.ndarray:
@@ -137,7 +138,7 @@ def _finite(points: np.ndarray) -> np.ndarray:
 class _Stage:
     """One figure with a 3D panel per character; artists are updated per frame."""
 
-    def __init__(self, worlds, root, *, title=None, labels=None, dpi=100.0):
+    def __init__(self, worlds, root, yaw, fps, *, title=None, labels=None, dpi=100.0):
         from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
         self.worlds, self.root, self.title = worlds, root, title
@@ -148,7 +149,7 @@ class _Stage:
             width *= 0.8
         self.fig = _figure(n, width=width, height=height)
         self.fig.set_dpi(dpi)
-        azim = _camera_azimuth(root)
+        self.azimuths = _camera_azimuths(yaw, fps)
         self.panels = []
         for k in range(n):
             # a 3D axes is always square: make it as wide as its column (cropped at the top
@@ -159,7 +160,7 @@ class _Stage:
             )
             ax.set_axis_off()
             ax.set_proj_type("persp", focal_length=0.6)
-            ax.view_init(elev=_ELEVATION, azim=azim, vertical_axis="y")
+            ax.view_init(elev=_ELEVATION, azim=self.azimuths[0], vertical_axis="y")
             ax.set_box_aspect((2 * _VIEW_HALF, _VIEW_HEIGHT, 2 * _VIEW_HALF), zoom=_ZOOM)
             if labels is not None:
                 self.fig.text((k + 0.5) / n, 0.93, labels[k], ha="center", fontsize=9)
@@ -209,6 +210,7 @@ class _Stage:
             ax.set_xlim(cx - h, cx + h)
             ax.set_ylim(0.0, _VIEW_HEIGHT)
             ax.set_zlim(cz - h, cz + h)
+            ax.view_init(elev=_ELEVATION, azim=self.azimuths[t], vertical_axis="y")
             panel["grid"].set_segments(grid)
             panel["bones"].set_segments([j[[p, c]] for p, c in _BONES])
             shadow = j * np.array([1.0, 0.0, 1.0])
@@ -227,17 +229,17 @@ class _Stage:
         return np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
 
 
-def _stage(pose, control, compare, title, labels, dpi) -> tuple[_Stage, int]:
+def _stage(pose, control, compare, title, labels, dpi, fps) -> tuple[_Stage, int]:
     pose, control = _check(pose, control)
     poses = [pose]
     if compare is not None:
         poses.append(_check(compare, control, "compare")[0])
     n = min(len(p) for p in poses)
     worlds = [world_joints(p[:n], control[:n]) for p in poses]
-    root = np.asarray(integrate_root(control[:n])[0])
+    root, yaw = (np.asarray(a) for a in integrate_root(control[:n]))
     if labels is None and compare is not None:
         labels = ("sample", "ground truth")
-    return _Stage(worlds, root, title=title, labels=labels, dpi=dpi), n
+    return _Stage(worlds, root, yaw, fps, title=title, labels=labels, dpi=dpi), n
 
 
 def animate(
@@ -264,7 +266,7 @@ def animate(
     """
     from PIL import Image
 
-    stage, n = _stage(pose, control, compare, title, labels, dpi)
+    stage, n = _stage(pose, control, compare, title, labels, dpi, fps)
     step = max(1, int(np.ceil(fps / max_fps)))
     rgb = [stage.frame(t, fps) for t in range(0, n, step)]
     # one palette from a few frames, then nearest-colour mapping: 10x faster than an
@@ -309,7 +311,7 @@ def render_still(
     """One frame of :func:`animate` (default the middle one) as an image for papers: PNG
     at ``dpi`` (200 -> 1280 x 960 px for one panel), or PDF/SVG by the file's suffix. The
     footprints drawn are those up to ``frame``."""
-    stage, n = _stage(pose, control, compare, title, labels, dpi=100)
+    stage, n = _stage(pose, control, compare, title, labels, 100, fps)
     t = n // 2 if frame is None else int(frame)
     if not 0 <= t < n:
         raise ValueError(f"frame {frame} out of range for a clip of {n} frames")

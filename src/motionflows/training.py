@@ -479,7 +479,8 @@ def _train_loop(
             model = module.initialize(model, first, key=keys["init"])
         graphdef, params, rest = nnx.split(model, nnx.Param, ...)
         opt_state = optimizer.init(params)
-    params, rest, opt_state = replicate((params, rest, opt_state), mesh)
+    # the guard too: a guard off the mesh would make the second step compile again
+    params, rest, opt_state, guard = replicate((params, rest, opt_state, guard), mesh)
     step_fn = _cached(
         ("step", module.loss, graphdef, tc), lambda: make_train_step(module, graphdef, optimizer)
     )
@@ -772,9 +773,11 @@ def evaluate_run(
     dataset: Any = None,
     batch_size: int | None = None,
     print_table: bool = True,
+    out_dir: str | Path | None = None,
 ) -> list[dict]:
     """Score every complete window of ``split``, or of the takes of ``data``; write
-    ``eval_<split>.json`` (``eval_<label>.json``) and print the table.
+    ``eval_<split>.json`` (``eval_<label>.json``) into ``out_dir`` (default: the run
+    directory) and print the table.
 
     ``data``: other takes (``"bvh:DIR"``, ``"bandai:DIR"``, a folder or one ``.bvh``; see
     :mod:`motionflows.data.takes`), cut into the run's windows at the run's fps and
@@ -826,8 +829,10 @@ def evaluate_run(
     scopes = getattr(module, "SCOPES", {})
     frames = {k: likelihood.scored_frames(scopes, k, window, config) for k in lls}
     rows = likelihood.likelihood_rows(lls, frames, ldpf, scopes=scopes)
+    out_dir = Path(run_dir if out_dir is None else out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     likelihood.write_eval(
-        Path(run_dir) / f"eval_{name}.json",
+        out_dir / f"eval_{name}.json",
         rows,
         split=split if data is None else name,
         experiment=module.NAME,

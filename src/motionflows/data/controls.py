@@ -133,8 +133,7 @@ def load_control(
     p = Path(text)
     if p.suffix.lower() not in (".npy", ".bvh"):
         raise ValueError(
-            f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a .npy or .bvh "
-            "file"
+            f"{text!r} is neither a control preset ({', '.join(PRESETS)}) nor a .npy or .bvh file"
         )
     if not p.exists():
         raise ValueError(f"control file {p} not found")

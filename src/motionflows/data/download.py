@@ -150,6 +150,7 @@ def download_bandai(
             continue
         data, problem, unreachable = None, "", False
         for attempt in range(retries + 1):
+            not_found = 0  # a 404 from every URL will not change on a retry
             for url in (base_url + row["source_path"], base_url + row["file"]):
                 unreachable = False
                 try:
@@ -158,6 +159,7 @@ def download_bandai(
                     problem = f"HTTP {err.code} for {url}"
                     data = None
                     if err.code == 404:
+                        not_found += 1
                         continue
                     break
                 except _TooLarge as err:
@@ -176,7 +178,7 @@ def download_bandai(
                     data = None
                     continue
                 break
-            if data is not None:
+            if data is not None or not_found == 2:
                 break
             if attempt < retries:
                 time.sleep(min(0.5 * 2.0**attempt, 2.0))

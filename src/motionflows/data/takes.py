@@ -76,9 +76,7 @@ def read_takes(spec: str, *, fps: float, skeleton: str = "bandai") -> tuple[list
     return clips, path.name
 
 
-def load_takes(
-    spec: str, *, fps: float, window: int, hop: int, skeleton: str = "bandai"
-) -> Takes:
+def load_takes(spec: str, *, fps: float, window: int, hop: int, skeleton: str = "bandai") -> Takes:
     """Every complete ``window``-frame window (start every ``hop`` frames) of every take of
     ``spec`` read at ``fps``. Takes shorter than one window are listed in ``skipped``; a
     spec with no usable take raises ``MotionDataError``."""

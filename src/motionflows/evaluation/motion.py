@@ -217,9 +217,7 @@ the threshold of the foot-skating ratio of Karunratanakul et al. 2023) is a skat
 
 def _foot_heights(joints: np.ndarray) -> np.ndarray:
     """(..., T, 2): the height of each foot's lowest joint (ankle or toe), left then right."""
-    return np.stack(
-        [np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1
-    )
+    return np.stack([np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
 
 
 _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])

@@ -74,11 +74,15 @@ def play(
     lo, hi = TEMPERATURE_RANGE
     if not lo <= float(temperature) <= hi:
         raise RunError(f"--temperature must be in [{lo:g}, {hi:g}], got {temperature:g}")
-    character = load_character(run_dir, temperature=temperature, seed=seed)
-    try:
-        server.serve(character, host=host, port=int(port), info={"run": str(run_dir)})
+    try:  # before the model loads, so a busy port fails at once
+        sock = server.bind(host, int(port))
     except OSError as err:
         raise RunError(str(err)) from None
+    try:
+        character = load_character(run_dir, temperature=temperature, seed=seed)
+        server.serve(character, sock=sock, info={"run": str(run_dir)})
+    finally:
+        sock.close()
 
 
 __all__ = ["Character", "load_character", "play"]

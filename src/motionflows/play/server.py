@@ -174,6 +174,9 @@ def create_app(character: Character, *, info: dict | None = None):
             await ws.send_text(json.dumps(hello_message(session)))
             engine.start()
             sender = asyncio.create_task(send_loop())
+            # a send to a page that has gone ends the task; the receive loop then sees the
+            # disconnect, so its exception is expected and only retrieved here
+            sender.add_done_callback(lambda task: task.cancelled() or task.exception())
             while True:
                 message = await ws.receive()
                 if message["type"] == "websocket.disconnect":
@@ -219,7 +222,7 @@ def bind(host: str, port: int) -> socket.socket:
     except OSError as err:
         sock.close()
         raise OSError(
-            f"cannot listen on {host}:{port} ({err.strerror}); pick another --port"
+            f"cannot listen on {host}:{port} ({err.strerror}); check --host or pick another --port"
         ) from None
     sock.listen(64)
     sock.setblocking(False)
@@ -232,14 +235,20 @@ def url_of(sock: socket.socket) -> str:
 
 
 def serve(
-    character: Character, *, host: str = "127.0.0.1", port: int = 0, info: dict | None = None
+    character: Character,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    sock: socket.socket | None = None,
+    info: dict | None = None,
 ) -> None:
-    """Serve the page until Ctrl-C; prints the URL (on stdout) and opens nothing."""
+    """Serve the page until Ctrl-C on ``sock`` (default: ``bind(host, port)``); prints the
+    URL (on stdout) and opens nothing."""
     check_installed()
     import uvicorn
 
     app = create_app(character, info=info)
-    sock = bind(host, port)
+    sock = bind(host, port) if sock is None else sock
     config = uvicorn.Config(
         app,
         log_level="warning",

@@ -1,0 +1,161 @@
+"""Machine floors for speed figures: measured matmul peak, memory bandwidth, counted FLOPs.
+
+A time means little without the machine it ran on, so the speed benchmarks state each time
+also as a multiple of its *floor*, the least time this machine could take for that work::
+
+    floor_s = max(matmul_flops / peak_flops_per_s, bytes_read / bandwidth_bytes_per_s)
+    multiple = measured_s / floor_s          (1.0 = at the machine's limit)
+
+* :func:`gemm_peak` measures the peak: the best of N runs of one jitted matmul
+  (m x k) @ (k x n), in float32 or with bfloat16 operands and float32 accumulation
+  (``preferred_element_type``), the two precisions the models run their conditioners in.
+  The default 7000 x 1206 x 2048 is the paper-size MoGlow's largest matmul (100 x 70
+  frames, 31 + 663 inputs + 512 hidden, 4 x 512 gates).
+* :func:`memory_bandwidth` measures read bandwidth: the best of N reads of a large float32
+  array (a sum, and a matrix-vector product, which is how batch-1 sampling reads weights).
+* :func:`matmul_flops` counts the matrix-product FLOPs (2 per multiply-add of every
+  ``dot_general`` and convolution) in a function's jaxpr, nested ``scan`` bodies times their
+  length. XLA's own ``compiled.cost_analysis()`` counts a loop body once, so for the
+  scanned flows it undercounts by the number of frames and steps. Elementwise work is not
+  counted: on the models here it is a small fraction, and it makes the floor a lower bound.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax.extend import core as jex_core
+
+__all__ = ["memory_bandwidth", "floor_entry", "gemm_peak", "matmul_flops", "tree_bytes"]
+
+PAPER_GEMM = (7000, 1206, 2048)
+
+
+def _best_seconds(fn: Callable[[], Any], repeats: int) -> float:
+    jax.block_until_ready(fn())  # compile and warm the caches
+    best = math.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def gemm_peak(
+    shape: tuple[int, int, int] = PAPER_GEMM, dtype: str = "float32", repeats: int = 5
+) -> dict:
+    """Measured matmul throughput: {"dtype", "shape" (m, k, n), "seconds" (best), "flops_per_s"}.
+
+    ``dtype`` "float32", or "bfloat16" for bfloat16 operands with float32 accumulation.
+    """
+    m, k, n = shape
+    ka, kb = jax.random.split(jax.random.key(0))
+    a = jax.random.normal(ka, (m, k), jnp.float32).astype(dtype)
+    b = jax.random.normal(kb, (k, n), jnp.float32).astype(dtype)
+    f = jax.jit(lambda a, b: jnp.matmul(a, b, preferred_element_type=jnp.float32))
+    seconds = _best_seconds(lambda: f(a, b), repeats)
+    return {
+        "dtype": dtype,
+        "shape": [m, k, n],
+        "seconds": seconds,
+        "flops_per_s": 2.0 * m * k * n / seconds,
+    }
+
+
+def memory_bandwidth(nbytes: int = 1 << 28, repeats: int = 5) -> dict:
+    """Measured read bandwidth over a float32 array of ``nbytes``: {"bytes", "seconds",
+    "bytes_per_s", "by"}, the best of a sum over the array and a matrix-vector product
+    with it (the batch-1 sampler's access pattern: every weight read once).
+
+    Why not a copy: ``x * 2`` writes a fresh output buffer each call, and first-touching it
+    (page faults) made it ~5x slower than reading here, which would put the floor above
+    times actually measured.
+    """
+    x = jnp.ones((nbytes // 4,), jnp.float32)
+    cols = 256 if x.size % 2048 else 2048
+    m, v = x.reshape(-1, cols), jnp.ones((cols,), jnp.float32)
+    best = {}
+    for name, f, args in (("sum", jnp.sum, (x,)), ("matvec", jnp.matmul, (m, v))):
+        jitted = jax.jit(f)
+        best[name] = _best_seconds(lambda jitted=jitted, args=args: jitted(*args), repeats)
+    by = min(best, key=best.get)
+    return {
+        "bytes": int(x.nbytes),
+        "seconds": best[by],
+        "bytes_per_s": x.nbytes / best[by],
+        "by": by,
+    }
+
+
+def tree_bytes(tree: Any) -> int:
+    """Total bytes of the arrays in a pytree (e.g. a model's parameters)."""
+    return int(sum(x.nbytes for x in jax.tree.leaves(tree) if hasattr(x, "nbytes")))
+
+
+def _eqn_flops(eqn) -> int:
+    name = eqn.primitive.name
+    if name == "dot_general":
+        (lhs_contract, _), _ = eqn.params["dimension_numbers"]
+        lhs = eqn.invars[0].aval.shape
+        out = eqn.outvars[0].aval.shape
+        return 2 * math.prod(out) * math.prod(lhs[i] for i in lhs_contract)
+    if name == "conv_general_dilated":
+        rhs = eqn.invars[1].aval.shape  # kernel: out features x in / groups x spatial
+        out = eqn.outvars[0].aval.shape
+        per_output = math.prod(rhs) // rhs[eqn.params["dimension_numbers"].rhs_spec[0]]
+        return 2 * math.prod(out) * per_output
+    return 0
+
+
+def _sub_jaxprs(value: Any):
+    if isinstance(value, jex_core.ClosedJaxpr):
+        yield value.jaxpr
+    elif isinstance(value, jex_core.Jaxpr):
+        yield value
+    elif isinstance(value, tuple | list):
+        for v in value:
+            yield from _sub_jaxprs(v)
+
+
+def _jaxpr_flops(jaxpr) -> int:
+    total = 0
+    for eqn in jaxpr.eqns:
+        total += _eqn_flops(eqn)
+        if eqn.primitive.name == "cond":  # one branch runs: count the dearest
+            total += max(_jaxpr_flops(j) for j in _sub_jaxprs(eqn.params["branches"]))
+            continue
+        inner = sum(_jaxpr_flops(j) for v in eqn.params.values() for j in _sub_jaxprs(v))
+        if eqn.primitive.name == "scan":
+            inner *= int(eqn.params["length"])
+        total += inner  # a while loop's trip count is unknown: its body counts once
+    return total
+
+
+def matmul_flops(fn: Callable, *args, **kwargs) -> int:
+    """Matrix-product FLOPs of one call ``fn(*args, **kwargs)`` (traced, not run)."""
+    return _jaxpr_flops(jax.make_jaxpr(fn)(*args, **kwargs).jaxpr)
+
+
+def floor_entry(
+    seconds: float,
+    *,
+    flops: float = 0.0,
+    peak_flops_per_s: float | None = None,
+    bytes_read: float = 0.0,
+    bandwidth_bytes_per_s: float | None = None,
+) -> dict:
+    """{"floor_s", "multiple_of_floor", "bound"} for a measured ``seconds``; "bound" says
+    which limit sets the floor ("compute" or "memory")."""
+    compute = flops / peak_flops_per_s if peak_flops_per_s else 0.0
+    memory = bytes_read / bandwidth_bytes_per_s if bandwidth_bytes_per_s else 0.0
+    floor = max(compute, memory)
+    return {
+        "floor_s": floor,
+        "multiple_of_floor": seconds / floor if floor > 0 else None,
+        "bound": "compute" if compute >= memory else "memory",
+    }

@@ -1,0 +1,103 @@
+"""`motionflows export` and `motionflows.pretrained`: shippable runs that work in data units."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import experiments.moglow as moglow
+from motionflows import cli, pretrained
+from motionflows.config import DataConfig, TrainConfig
+from motionflows.errors import RunError
+from motionflows.export import export_run
+from motionflows.pretrained import PretrainedModel
+from motionflows.training import evaluate_run, train
+
+pytestmark = pytest.mark.usefixtures("fast_compilation")
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A 3-step MoGlow on a small synthetic set and its export: (run dir, export dir)."""
+    root = tmp_path_factory.mktemp("pretrained")
+    config = moglow.Config(
+        data=DataConfig(window=16, hop=8, synthetic_clips=8, synthetic_seconds=4.0),
+        train=TrainConfig(steps=3, batch_size=4, eval_every=3, eval_batches=1, log_every=1),
+        K=1,
+        hidden=8,
+        layers=1,
+        tau=3,
+        residual=True,
+    )
+    run_dir = root / "runs" / "moglow" / "tiny"
+    train(moglow, config, run_dir=run_dir, progress=False)
+    out = export_run(run_dir, root / "models" / "moglow-tiny", temperature=0.7)
+    return run_dir, out
+
+
+def _bytes(folder) -> int:
+    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+
+
+def test_export_holds_no_optimiser_state_and_loads_like_the_run(exported):
+    run_dir, out = exported
+    for name in ("config.json", "standardizer.json", "metrics.jsonl", "pretrained.json"):
+        assert (out / name).is_file(), name
+    assert not (out / "checkpoints" / "latest").exists()
+    assert _bytes(out / "checkpoints") < 0.6 * _bytes(run_dir / "checkpoints" / "best")
+    info = json.loads((out / "pretrained.json").read_text())
+    assert info["temperature"] == 0.7 and info["experiment"] == "moglow"
+    a, b = PretrainedModel.from_run(run_dir), PretrainedModel.from_run(out)
+    control = np.tile(np.array([0.05, 0.0, 0.01], np.float32), (2, 12, 1))
+    np.testing.assert_array_equal(
+        a.sample(control, seed=3, temperature=0.7), b.sample(control, seed=3, temperature=0.7)
+    )
+    assert b.temperature == 0.7 and a.temperature == 1.0  # the run itself has no validated T
+    with pytest.raises(RunError, match="not empty"):
+        export_run(run_dir, out)
+
+
+def test_pretrained_model_speaks_data_units(exported):
+    run_dir, out = exported
+    model = PretrainedModel.from_run(out)
+    control = np.tile(np.array([0.05, 0.0, 0.0], np.float32), (3, 16, 1))  # 1 m/s forward
+    pose = model.sample(control, seed=0)
+    assert pose.shape == (3, 16, 63) and pose.dtype == np.float32
+    assert 0.3 < float(np.median(pose[..., 1])) < 1.5  # joint heights in metres, not std units
+    assert not np.array_equal(pose, model.sample(control, seed=1))
+    np.testing.assert_array_equal(pose, model.sample(control, seed=0))
+    # log_prob: nats per frame in metres of the window scope = the eval table's number
+    from motionflows.training import load_run
+
+    _, _, _, ds = load_run(run_dir)
+    rows = evaluate_run(run_dir, "test", print_table=False)
+    window = next(r for r in rows if r["scope"] == "window")
+    valid = np.asarray(ds.test.valid).all(axis=1)
+    ll = model.log_prob(ds.test.pose[valid], ds.test.control[valid])
+    assert ll.shape == (int(valid.sum()),)
+    assert -float(np.mean(ll)) == pytest.approx(window["nats_per_frame_metres"], rel=1e-4)
+    with pytest.raises(ValueError, match="temperature"):
+        model.sample(control, temperature=-1.0)
+    with pytest.raises(ValueError, match="NaN"):
+        model.log_prob(np.full((1, 16, 63), np.nan, np.float32), control[:1])
+
+
+def test_pretrained_names_and_cli(exported, monkeypatch, tmp_path, capsys):
+    _, out = exported
+    monkeypatch.setattr(pretrained, "MODELS_DIR", out.parent)
+    assert pretrained.available() == ["moglow-tiny"]
+    assert pretrained.path("moglow-tiny") == out
+    assert pretrained.load("moglow-tiny").temperature == 0.7
+    with pytest.raises(RunError, match="available: moglow-tiny"):
+        pretrained.path("nope")
+    code = cli.main(["sample", "pretrained:moglow-tiny", "--control", "walk", "--seconds", "1",
+                     "--out", str(tmp_path), "--no-gif"])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    (npz,) = tmp_path.glob("*.npz")
+    assert "T0.7" in npz.name  # the validated temperature is the default
+    code = cli.main(["eval", "pretrained:nope"])
+    assert code == 2 and "no pretrained model 'nope'" in capsys.readouterr().err
+    code = cli.main(["export", "pretrained:moglow-tiny", "--out", str(tmp_path / "copy")])
+    assert code == 0 and (tmp_path / "copy" / "config.json").is_file()

@@ -1,0 +1,103 @@
+"""The speed benchmarks' --quick modes run and state every time against a measured floor.
+
+Smoke tests only: no timing is asserted (CI machines differ and are shared). What is checked
+is that each figure comes with its floor, the multiple, the peaks measured in the same run,
+the load average at start and end, and the machine's CPU and ISA; and that the FLOP counter
+behind the floors counts a scanned matmul once per iteration (XLA's cost analysis does not).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from motionflows import roofline
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run_quick(script: str, dtype: str) -> dict:
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick", "--dtypes", dtype],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=dict(os.environ),  # the same backend as the suite (CPU, or a GPU if present)
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "multiple" not in proc.stdout.splitlines()[0]  # stdout is one JSON document
+    assert "load average at start" in proc.stderr  # the people's summary goes to stderr
+    return json.loads(proc.stdout)
+
+
+def _check_common(out: dict, figures: list[str]) -> None:
+    machine = out["machine"]
+    assert machine["cpu"] and isinstance(machine["isa"], list)
+    assert len(machine["load_average_1_5_15"]) == 3
+    assert len(machine["load_average_after"]) == 3
+    for dtype in ("float32", "bfloat16"):
+        assert out["peaks"]["gemm"][dtype]["flops_per_s"] > 0
+    assert out["peaks"]["memory"]["bytes_per_s"] > 0
+    rows = {(r["dtype"], r["figure"]): r for r in out["summary"]}
+    for res in out["results"]:
+        assert res["train_flops"] > 0
+        for name in figures:
+            row = rows[(res["dtype"], name)]
+            assert row["floor"] > 0 and row["bound"] in ("compute", "memory")
+            assert row["multiple_of_floor"] == pytest.approx(row["value"] / row["floor"], rel=1e-6)
+
+
+def test_moglow_speed_quick_reports_floors():
+    out = _run_quick("moglow_speed.py", "bfloat16")
+    assert [r["dtype"] for r in out["results"]] == ["bfloat16"]
+    _check_common(
+        out,
+        [
+            "train_step_s",
+            "sample_ms_per_frame_b1",
+            "sample_ms_per_frame_b64",
+            "stream_step_ms_b1_median",
+            "stream_step_ms_b64_median",
+        ],
+    )
+    res = out["results"][0]
+    # the floor of a batch-64 frame can't be below the batch-1 frame's
+    assert res["sample_floor_b64"]["floor_s"] >= res["sample_floor_b1"]["floor_s"]
+    assert res["stream_step_floor_b1"]["multiple_of_floor_p95"] > 0
+
+
+def test_glow_fixed_speed_quick_reports_floors():
+    out = _run_quick("glow_fixed_speed.py", "float32")
+    _check_common(out, ["train_step_s", "sample_s"])
+
+
+def test_matmul_flops_counts_every_scan_iteration_and_the_backward_pass():
+    x, w = jnp.ones((8, 16)), jnp.ones((16, 16))
+
+    def f(x, w):
+        y, _ = jax.lax.scan(lambda c, _: (jnp.tanh(c @ w), None), x, None, length=5)
+        return y.sum()
+
+    forward = 5 * 2 * 8 * 16 * 16
+    assert roofline.matmul_flops(f, x, w) == forward
+    # reverse mode: the forward products, then dx and dw per iteration
+    assert roofline.matmul_flops(jax.grad(f, argnums=1), x, w) == 3 * forward
+
+
+def test_floor_entry_takes_the_larger_bound():
+    compute = roofline.floor_entry(
+        2.0, flops=10.0, peak_flops_per_s=10.0, bytes_read=1.0, bandwidth_bytes_per_s=10.0
+    )
+    assert compute == {"floor_s": 1.0, "multiple_of_floor": 2.0, "bound": "compute"}
+    memory = roofline.floor_entry(
+        2.0, flops=1.0, peak_flops_per_s=10.0, bytes_read=40.0, bandwidth_bytes_per_s=10.0
+    )
+    assert memory["bound"] == "memory" and memory["multiple_of_floor"] == 0.5
