@@ -1526,7 +1526,12 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             retrain=bool(ns.get("retrain", False)),
             gifs=ns.get("gifs", True) is not False,
             command=_command(data, names, budget, out)
-            + (f" --test-data {ns['test_data']}" if ns.get("test_data") else ""),
+            + (f" --test-data {ns['test_data']}" if ns.get("test_data") else "")
+            + (
+                f" --temperature {ns['temperature']:g}"
+                if ns.get("temperature") not in (None, 1.0)
+                else ""
+            ),
             test_data=ns.get("test_data"),
         )
     except (RunError, ValueError, MotionDataError) as err:
