@@ -1105,7 +1105,7 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
 
 
 def render_gif(sample_m, reference_m, control_m, path: Path, fps: float, title: str) -> None:
-    """One GIF: the model's sample (solid) beside the ground truth (faded, shifted 1 m) for
+    """One GIF: the model's sample beside the ground truth (a second panel, same camera) for
     the same test control, both moved along the trajectory integrated from that control."""
     from motionflows import render
 
@@ -1293,7 +1293,7 @@ def run_benchmark(
                     control_m[0, :n_frames],
                     path,
                     float(data_cfg.fps),
-                    f"{name} sample (T={temperature:g}) | faded: ground truth",
+                    f"{name} sample (T={temperature:g}), beside the ground truth",
                 )
                 plots["gifs"][name] = f"gifs/{name}.gif"
     results["plots"] = plots
