@@ -39,38 +39,11 @@ import optax
 from flax import nnx
 
 from motionflows import roofline
-from motionflows.bench import describe_machine
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.glow import Glow
 
 PAPER = {"levels": 4, "steps": 32, "hidden": 512, "batch": 64, "window": 80}
 QUICK = {"levels": 2, "steps": 2, "hidden": 32, "batch": 8, "window": 16}  # a smoke test
-
-
-def machine() -> dict:
-    """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
-    return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
-
-
-def measure_peaks(quick: bool) -> dict:
-    """This machine's floors, measured now: GEMM peak per precision and memory read bandwidth."""
-    shape = (1024, 512, 1024) if quick else roofline.PAPER_GEMM
-    repeats = 3 if quick else 7
-    return {
-        "gemm": {dt: roofline.gemm_peak(shape, dt, repeats) for dt in ("float32", "bfloat16")},
-        "memory": roofline.memory_bandwidth(1 << 25 if quick else 1 << 29, repeats),
-        "memory_repeats": repeats,
-    }
-
-
-def _device_peak_bytes() -> int | None:
-    try:
-        stats = jax.devices()[0].memory_stats()
-    except Exception:  # noqa: BLE001 - CPU backends may not implement it
-        return None
-    if not stats:
-        return None
-    return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
 
 
 def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
@@ -176,7 +149,7 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
         bytes_read=res["weight_bytes"],
         bandwidth_bytes_per_s=res["weight_read"]["bytes_per_s"],
     )
-    res["device_peak_bytes"] = _device_peak_bytes()
+    res["device_peak_bytes"] = roofline.device_peak_bytes()
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return res
 
@@ -206,20 +179,7 @@ def summary(results: list[dict]) -> list[dict]:
 
 def summary_text(out: dict) -> str:
     """The summary as lines for people (stderr; stdout stays one JSON document)."""
-    m, peaks = out["machine"], out["peaks"]
-    lines = [
-        f"{m['cpu']} ({', '.join(m['isa']) or 'no AVX'}), {m['cores']} cores, {m['devices']}",
-        "load average at start {:.2f} / {:.2f} / {:.2f}, at end {:.2f} / {:.2f} / {:.2f}".format(
-            *m["load_average_1_5_15"], *m["load_average_after"]
-        ),
-        "measured peaks: GEMM {} float32 {:.0f} GFLOP/s, bfloat16 {:.0f} GFLOP/s; "
-        "memory read {:.1f} GB/s".format(
-            "x".join(map(str, peaks["gemm"]["float32"]["shape"])),
-            peaks["gemm"]["float32"]["flops_per_s"] / 1e9,
-            peaks["gemm"]["bfloat16"]["flops_per_s"] / 1e9,
-            peaks["memory"]["bytes_per_s"] / 1e9,
-        ),
-    ]
+    lines = roofline.machine_lines(out["machine"], out["peaks"])
     for row in out["summary"]:
         lines.append(
             f"{row['dtype']:>9} {row['figure']:<13} {row['value']:9.4f} s  "
@@ -250,10 +210,10 @@ def main(argv=None) -> int:
             "compile_s": "XLA compile seconds (lower + compile)",
             "bytes": "bytes",
         },
-        "machine": machine(),
+        "machine": roofline.machine(),
         "results": [],
     }
-    out["peaks"] = measure_peaks(args.quick)
+    out["peaks"] = roofline.measure_peaks(args.quick)
     print(json.dumps({"peaks": out["peaks"]}), file=sys.stderr, flush=True)
     key = jax.random.key(0)
     for dtype in dtypes:

@@ -30,7 +30,6 @@ import optax
 from flax import nnx
 
 from motionflows import roofline
-from motionflows.bench import describe_machine
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.moglow import MoGlow
@@ -60,32 +59,6 @@ TARGETS = {
     "sample_ms_per_frame_b1": 10.0,
     "sample_ms_per_frame_b64": 20.0,
 }
-
-
-def machine() -> dict:
-    """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
-    return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
-
-
-def measure_peaks(quick: bool) -> dict:
-    """This machine's floors, measured now: GEMM peak per precision and memory read bandwidth."""
-    shape = (1024, 512, 1024) if quick else roofline.PAPER_GEMM
-    repeats = 3 if quick else 7
-    return {
-        "gemm": {dt: roofline.gemm_peak(shape, dt, repeats) for dt in ("float32", "bfloat16")},
-        "memory": roofline.memory_bandwidth(1 << 25 if quick else 1 << 29, repeats),
-        "memory_repeats": repeats,
-    }
-
-
-def _device_peak_bytes() -> int | None:
-    try:
-        stats = jax.devices()[0].memory_stats()
-    except Exception:  # noqa: BLE001 - CPU backends may not implement it
-        return None
-    if not stats:
-        return None
-    return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
 
 
 def _time(fn, repeats: int) -> list[float]:
@@ -208,7 +181,7 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
             res[f"stream_step_ms_b{batch}_p95"] / 1e3 / stream_floor["floor_s"]
         )
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    res["device_peak_bytes"] = _device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
+    res["device_peak_bytes"] = roofline.device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res
 
 
@@ -243,20 +216,7 @@ def summary(results: list[dict]) -> list[dict]:
 
 def summary_text(out: dict) -> str:
     """The summary as lines for people (stderr; stdout stays one JSON document)."""
-    m, peaks = out["machine"], out["peaks"]
-    lines = [
-        f"{m['cpu']} ({', '.join(m['isa']) or 'no AVX'}), {m['cores']} cores, {m['devices']}",
-        "load average at start {:.2f} / {:.2f} / {:.2f}, at end {:.2f} / {:.2f} / {:.2f}".format(
-            *m["load_average_1_5_15"], *m["load_average_after"]
-        ),
-        "measured peaks: GEMM {} float32 {:.0f} GFLOP/s, bfloat16 {:.0f} GFLOP/s; "
-        "memory read {:.1f} GB/s".format(
-            "x".join(map(str, peaks["gemm"]["float32"]["shape"])),
-            peaks["gemm"]["float32"]["flops_per_s"] / 1e9,
-            peaks["gemm"]["bfloat16"]["flops_per_s"] / 1e9,
-            peaks["memory"]["bytes_per_s"] / 1e9,
-        ),
-    ]
+    lines = roofline.machine_lines(out["machine"], out["peaks"])
     for row in out["summary"]:
         lines.append(
             f"{row['dtype']:>9} {row['figure']:<27} {row['value']:9.3f} {row['unit']:<2}  "
@@ -286,12 +246,12 @@ def main(argv=None) -> int:
             "targets_per_window": cfg["window"] - cfg["tau"],
         },
         "quick": args.quick,
-        "machine": machine(),
+        "machine": roofline.machine(),
         "reference_official_pytorch": REFERENCE,
         "targets": TARGETS,
         "results": [],
     }
-    out["peaks"] = measure_peaks(args.quick)
+    out["peaks"] = roofline.measure_peaks(args.quick)
     print(json.dumps({"peaks": out["peaks"]}), file=sys.stderr, flush=True)
     key = jax.random.key(0)
     for dtype in dtypes:

@@ -159,3 +159,53 @@ def floor_entry(
         "multiple_of_floor": seconds / floor if floor > 0 else None,
         "bound": "compute" if compute >= memory else "memory",
     }
+
+
+def machine_lines(machine: dict, peaks: dict) -> list[str]:
+    """The speed benchmarks' header for people: the machine, the load average at start and
+    end, and the measured GEMM and memory peaks (``machine`` with ``load_average_after``)."""
+    m = machine
+    return [
+        f"{m['cpu']} ({', '.join(m['isa']) or 'no AVX'}), {m['cores']} cores, {m['devices']}",
+        "load average at start {:.2f} / {:.2f} / {:.2f}, at end {:.2f} / {:.2f} / {:.2f}".format(
+            *m["load_average_1_5_15"], *m["load_average_after"]
+        ),
+        "measured peaks: GEMM {} float32 {:.0f} GFLOP/s, bfloat16 {:.0f} GFLOP/s; "
+        "memory read {:.1f} GB/s".format(
+            "x".join(map(str, peaks["gemm"]["float32"]["shape"])),
+            peaks["gemm"]["float32"]["flops_per_s"] / 1e9,
+            peaks["gemm"]["bfloat16"]["flops_per_s"] / 1e9,
+            peaks["memory"]["bytes_per_s"] / 1e9,
+        ),
+    ]
+
+
+def machine() -> dict:
+    """The machine (:func:`motionflows.bench.describe_machine`) plus the raw load average."""
+    import os
+
+    from motionflows.bench import describe_machine
+
+    return {**describe_machine(), "load_average_1_5_15": list(os.getloadavg())}
+
+
+def measure_peaks(quick: bool) -> dict:
+    """This machine's floors, measured now: GEMM peak per precision and memory read bandwidth."""
+    shape = (1024, 512, 1024) if quick else PAPER_GEMM
+    repeats = 3 if quick else 7
+    return {
+        "gemm": {dt: gemm_peak(shape, dt, repeats) for dt in ("float32", "bfloat16")},
+        "memory": memory_bandwidth(1 << 25 if quick else 1 << 29, repeats),
+        "memory_repeats": repeats,
+    }
+
+
+def device_peak_bytes() -> int | None:
+    """Peak bytes in use on the first device, where the backend reports it (else None)."""
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - CPU backends may not implement it
+        return None
+    if not stats:
+        return None
+    return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
