@@ -10,20 +10,18 @@ import jax
 import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.models.validation import check_input, check_temperature
 
 INFO_FILE = "pretrained.json"
 """Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
 
 
-def _array(x: Any, shape_tail: tuple[int, ...], name: str) -> np.ndarray:
-    arr = np.asarray(x)
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"{name} must be floating point, got dtype {arr.dtype}")
-    if arr.ndim != 3 or arr.shape[2:] != shape_tail or 0 in arr.shape:
-        raise ValueError(f"{name} must be (B, T, {shape_tail[0]}) with B, T >= 1, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} holds NaN or inf")
-    return arr.astype(np.float32)
+def _array(x: Any, channels: int, name: str, where: str) -> np.ndarray:
+    """``x`` as (B, T, channels) float32 after the models' shared input checks."""
+    shape = tuple(np.shape(x))
+    if len(shape) != 3 or shape[-1] != channels:
+        raise ValueError(f"{where}: {name} must be (B, T, {channels}), got {shape}")
+    return np.asarray(check_input(x, name, where))
 
 
 class PretrainedModel:
@@ -72,10 +70,9 @@ class PretrainedModel:
         ``temperature`` defaults to :attr:`temperature`; a fixed-length model (Glow) needs
         T = :attr:`window`. The same seed gives the same motion.
         """
-        control = _array(control, (CONTROL_DIM,), "control")
-        temp = self.temperature if temperature is None else float(temperature)
-        if not (np.isfinite(temp) and temp >= 0):
-            raise ValueError(f"temperature must be a finite number >= 0, got {temperature!r}")
+        control = _array(control, CONTROL_DIM, "control", "PretrainedModel.sample")
+        temp = self.temperature if temperature is None else temperature
+        temp = float(check_temperature(temp, "PretrainedModel.sample"))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
         x = self._sample(self.model, c, jax.random.key(int(seed)), np.float32(temp))
         return np.asarray(self.standardizer.denormalize_pose(np.asarray(x)), np.float32)
@@ -85,8 +82,8 @@ class PretrainedModel:
         controls (B, T, 3), in the scope :attr:`scope` (``"window"``: all T frames; for the
         VAE-LSTM ``"elbo"``, a lower bound). The standardiser's Jacobian is included:
         ``(log p_std + F log|d std / d x|) / F`` over the F scored frames."""
-        pose = _array(pose, (POSE_DIM,), "pose")
-        control = _array(control, (CONTROL_DIM,), "control")
+        pose = _array(pose, POSE_DIM, "pose", "PretrainedModel.log_prob")
+        control = _array(control, CONTROL_DIM, "control", "PretrainedModel.log_prob")
         if pose.shape[:2] != control.shape[:2]:
             raise ValueError(f"pose {pose.shape} and control {control.shape} must share (B, T)")
         batch = {
