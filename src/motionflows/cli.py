@@ -60,6 +60,16 @@ def _folder(path: str | Path, flag: str) -> Path:
     return path
 
 
+def _output_folder(args, run_dir: Path, local: str, default: Path) -> Path:
+    """``--out`` if given; for ``pretrained:NAME``, ``<local>/NAME`` in the working directory
+    (never inside the installed package); else ``default`` inside the run."""
+    if args.out:
+        return _folder(args.out, "--out")
+    if str(args.run_dir).startswith("pretrained:"):
+        return Path(local) / str(args.run_dir).split(":", 1)[1]
+    return default
+
+
 # ---------------------------------------------------------------------------- commands
 
 
@@ -77,12 +87,7 @@ def cmd_eval(args) -> int:
         raise RunError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.data is None and (args.label or args.skeleton):
         raise RunError("--label and --skeleton go with --data (other takes to score)")
-    if args.out:
-        out = _folder(args.out, "--out")
-    elif str(args.run_dir).startswith("pretrained:"):  # never write into the package
-        out = Path("evals") / str(args.run_dir).split(":", 1)[1]
-    else:
-        out = run_dir
+    out = _output_folder(args, run_dir, "evals", run_dir)
     training.evaluate_run(
         run_dir,
         args.split,
@@ -151,12 +156,7 @@ def cmd_sample(args) -> int:
             f"--temperature must be a finite number >= 0 (1 = the model's own spread, 0 = its "
             f"mode), got {temperature:g}"
         )
-    if args.out:
-        out = _folder(args.out, "--out")
-    elif str(args.run_dir).startswith("pretrained:"):  # never write into the package
-        out = Path("samples") / str(args.run_dir).split(":", 1)[1]
-    else:
-        out = run_dir / "samples"
+    out = _output_folder(args, run_dir, "samples", run_dir / "samples")
     out.mkdir(parents=True, exist_ok=True)
     for name, control, truth in _sample_controls(args, fps):
         pose = training.draw_samples(
