@@ -29,6 +29,7 @@ import numpy as np
 from motionflows import bench, runs
 from motionflows.config import apply_overrides
 from motionflows.training import load_run, train
+from motionflows.windows import pick, standardized
 
 
 def _parse_floats(text: str) -> list[float]:
@@ -56,8 +57,8 @@ def score(
         exp, model, config, dataset, split, limit=windows, key=key, num_bootstrap=200
     )
     part = dataset.split(split)
-    idx = bench._pick(part, sample_windows, seed=2)
-    _, ctrl = bench._standardized(dataset, part, idx)
+    idx = pick(part, sample_windows, seed=2)
+    _, ctrl = standardized(dataset.standardizer, part, idx)
     gt_m = np.asarray(part.pose, np.float32)[idx]
     control_m = np.asarray(part.control, np.float32)[idx]
     fps = float(config.data.fps)

@@ -45,7 +45,18 @@ PRESETS: dict[str, Config] = {
     "cpu": Config(),  # closed-form fits on every training window: seconds
     "gaussian": Config(model="gaussian"),
     "linear_ar_diag": Config(covariance="diag"),
+    # Seconds: tests and the bench's smoke budget (a small synthetic set, 1.6 s windows).
+    "smoke": Config(
+        data=DataConfig(window=32, hop=8, synthetic_clips=16, synthetic_seconds=6.0),
+        fit_windows=1024,
+    ),
 }
+
+BENCH_MODELS: dict[str, dict] = {
+    "gaussian": {"model": "gaussian"},
+    "linear_ar": {"model": "linear_ar"},
+}
+"""The models ``motionflows bench`` runs from this experiment: name -> the Config fields."""
 
 SCOPES: dict[str, Scope] = {
     "window": Scope("log p(x_1:T | c_1:T), all T frames; AR history before frame 1 = zeros"),

@@ -136,6 +136,18 @@ PRESETS["cpu"] = Config(
     K=8,
     hidden=128,
 )
+# Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
+PRESETS["smoke"] = dataclasses.replace(
+    PRESETS["quick"],
+    data=DataConfig(window=32, hop=8, synthetic_clips=16, synthetic_seconds=6.0),
+    train=dataclasses.replace(
+        PRESETS["quick"].train, steps=30, batch_size=8, eval_every=30, eval_batches=1,
+        log_every=5, checkpoint_every=30, keep_checkpoints=1,
+    ),
+    levels=2,
+    K=2,
+    hidden=16,
+)  # fmt: skip
 PRESETS["paper_unconditional"] = dataclasses.replace(PRESETS["paper"], conditional=False)
 PRESETS["quick_unconditional"] = dataclasses.replace(PRESETS["quick"], conditional=False)
 

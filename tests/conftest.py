@@ -6,6 +6,34 @@ import jax
 import pytest
 
 
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers",
+        "strict_dtypes: run under jax_numpy_dtype_promotion='strict' (no implicit dtype "
+        "promotion: mixing float32 with int32 or bfloat16 raises instead of silently widening)",
+    )
+    config.addinivalue_line(
+        "markers",
+        "standard_dtypes: opt one test of a strict_dtypes module out (optax's Adam computes "
+        "float ** int32 in its bias correction, which strict promotion refuses)",
+    )
+
+
+@pytest.fixture(autouse=True)
+def _dtype_promotion(request):
+    """Strict dtype promotion for tests marked ``strict_dtypes`` (and not ``standard_dtypes``).
+
+    Opt-in per module (``pytestmark = pytest.mark.strict_dtypes``): JAX's own
+    ``JAX_NUMPY_DTYPE_PROMOTION=strict`` applies it to everything, and optax's Adam fails then.
+    """
+    node = request.node
+    if node.get_closest_marker("strict_dtypes") and not node.get_closest_marker("standard_dtypes"):
+        with jax.numpy_dtype_promotion("strict"):
+            yield
+    else:
+        yield
+
+
 @pytest.fixture
 def key() -> jax.Array:
     """A fixed PRNG key; tests split it for every draw."""

@@ -2,18 +2,23 @@
 
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pytest
 from flax import nnx
 
+from motionflows.distributions import Normal
 from motionflows.models.baselines import (
     DiagonalGaussian,
     LinearGaussianAR,
     fit_gaussian,
     fit_linear_ar,
 )
+
+pytestmark = pytest.mark.strict_dtypes
 
 D, C, TAU = 3, 2, 2
 
@@ -47,6 +52,22 @@ def test_gaussian_log_prob_matches_numpy():
         for b in range(4)
     ]
     np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_gaussian_frames_are_a_normal_distribution():
+    m = DiagonalGaussian(pose_dim=D)
+    m.mean[...] = jnp.array([0.5, -1.0, 2.0])
+    m.log_std[...] = jnp.array([0.1, -0.3, 0.7])
+    dist = m.distribution()
+    assert isinstance(dist, Normal) and dist.event_shape == (D,)
+    x = m.sample(jax.random.key(3), (4, 5))
+    chex.assert_shape(x, (4, 5, D))
+    chex.assert_trees_all_close(m.frame_log_prob(x), dist.log_prob(x))
+    # temperature 0 is the mean, exactly
+    chex.assert_trees_all_equal(
+        m.sample(jax.random.key(3), (2, 3), temperature=0.0),
+        jnp.broadcast_to(m.mean[...], (2, 3, D)),
+    )
 
 
 def test_ar_log_prob_matches_direct_computation():
@@ -113,6 +134,7 @@ def _gradient_fit(init, data, steps=700):
     return nnx.merge(graph, params, rest)
 
 
+@pytest.mark.standard_dtypes  # optax.adam
 def test_closed_form_matches_gradient_fit():
     true = _random_ar(jax.random.key(6))
     data = _ar_data(true, n=32, t=16, seed=1)

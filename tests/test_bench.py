@@ -206,7 +206,7 @@ def test_configs_share_one_data_config():
     for name in MODELS:
         config, prov = bench.bench_config(name, "smoke", data)
         seen.add(json.dumps(to_dict(config.data), sort_keys=True))
-        assert prov["preset"] == "quick" and not prov["overrides_skipped"]
+        assert prov["preset"] == "smoke" and not prov["overrides_skipped"]
     assert len(seen) == 1
     full, prov = bench.bench_config("linear_ar", "full", bench.parse_data_spec("synthetic"))
     assert prov["preset"] == "paper" and full.data.window == 80
@@ -241,3 +241,17 @@ def test_motion_metrics_count_and_drop_diverged_samples():
     blown[1:, 5, 0] = np.nan
     with pytest.raises(ValueError, match="all 4 samples diverged"):
         bench.motion_metrics(blown, ctrl, gt, None, 20.0)
+
+
+def test_models_and_presets_come_from_the_experiments(monkeypatch):
+    models = bench.bench_models()
+    assert models["gaussian"] == ("baselines", {"model": "gaussian"})  # BENCH_MODELS
+    assert models["linear_ar"].experiment == "baselines"
+    data = bench.parse_data_spec("synthetic", "smoke")
+    config, prov = bench.bench_config("gaussian", "smoke", data)
+    assert config.model == "gaussian" and config.data == data
+    assert prov["experiment"] == "baselines" and prov["overrides"]["model"] == "gaussian"
+    # a budget whose preset an experiment lacks is refused, naming the preset
+    monkeypatch.delitem(bench.load_experiment("linear_ar").PRESETS, "smoke")
+    with pytest.raises(RunError, match="no preset 'smoke'"):
+        bench.bench_config("linear_ar", "smoke", data)

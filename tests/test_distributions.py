@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +13,7 @@ from motionflows import bijectors as bj
 from motionflows.distributions import Normal, StudentT, Transformed
 from motionflows.nets import coupling_mlp
 
-pytestmark = pytest.mark.usefixtures("fast_compilation")
+pytestmark = [pytest.mark.usefixtures("fast_compilation"), pytest.mark.strict_dtypes]
 
 T, D = 3, 2
 
@@ -162,3 +163,49 @@ def test_transformed_sampling_temperature_and_context():
     close(lp, dist.log_prob(xs, context=ctx), 1e-4)
     with pytest.raises(ValueError, match="bijector"):
         Transformed(Normal((T, D)), object())
+
+
+@pytest.mark.parametrize("cls", ["normal", "student_t"])
+def test_log_scale_is_the_scale_in_log_space(cls):
+    x = jax.random.normal(jax.random.key(8), (4, T, D)) * 2.0
+    loc, log_scale = jnp.array([0.5, -1.0]), jnp.array([0.7, -1.2])
+    make = Normal if cls == "normal" else (lambda *a, **k: StudentT(*a, df=4.0, **k))
+    by_log = make((T, D), loc=loc, log_scale=log_scale)
+    by_scale = make((T, D), loc=loc, scale=jnp.exp(log_scale))
+    close(by_log.log_prob(x), by_scale.log_prob(x), 1e-4)
+    key = jax.random.key(9)
+    close(by_log.sample(key, (3,), temperature=0.5), by_scale.sample(key, (3,), temperature=0.5))
+    with pytest.raises(ValueError, match="not both"):
+        make((T, D), scale=1.0, log_scale=0.0)
+
+
+def test_empty_event_shape_scores_each_element():
+    x = jax.random.normal(jax.random.key(10), (4, T, D))
+    loc, log_scale = jnp.array([0.5, -1.0]), jnp.array([0.7, -1.2])
+    each = Normal((), loc=loc, log_scale=log_scale).log_prob(x)
+    chex.assert_shape(each, (4, T, D))
+    close(each, jax.scipy.stats.norm.logpdf(x, loc, jnp.exp(log_scale)))
+
+
+def test_transformed_samples_a_model_with_only_the_log_det_pair():
+    """A model (Glow) is a bijector through its two *_and_log_det methods alone."""
+
+    class Doubling(nnx.Module):
+        def forward_and_log_det(self, z, *, context=None):
+            return 2.0 * z, jnp.full(z.shape[:-2], z.shape[-2] * z.shape[-1] * jnp.log(2.0))
+
+        def inverse_and_log_det(self, x, *, context=None):
+            return 0.5 * x, jnp.full(x.shape[:-2], -x.shape[-2] * x.shape[-1] * jnp.log(2.0))
+
+    dist = Transformed(Normal((T, D)), Doubling())
+    key = jax.random.key(11)
+    x = dist.sample(key, (5,))
+    chex.assert_shape(x, (5, T, D))
+    close(x, 2.0 * Normal((T, D)).sample(key, (5,)), 0)
+    close(dist.log_prob(x), jnp.sum(jax.scipy.stats.norm.logpdf(x, 0.0, 2.0), axis=(-2, -1)))
+
+
+def test_this_module_runs_under_strict_dtype_promotion():
+    """The ``strict_dtypes`` marker is in force: float32 + int32 raises, not widens."""
+    with pytest.raises(jax.dtypes.TypePromotionError):
+        jnp.ones(2, jnp.float32) + jnp.ones(2, jnp.int32)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,8 +16,11 @@ from flax import nnx
 import experiments.glow_fixed as glow_fixed
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, JOINT_NAMES, POSE_DIM
+from motionflows.distributions import Normal, Transformed
 from motionflows.models.glow import Glow
 from motionflows.nets.conv import ConvNet, TimeConv
+
+pytestmark = pytest.mark.strict_dtypes
 
 
 def _perturb(model, key, scale=0.1):
@@ -127,6 +131,20 @@ def test_log_prob_matches_jacobian(which, request, key):
     np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(fwd_log_det, -log_det, rtol=1e-4, atol=5e-3)
+
+
+def test_glow_is_a_transformed_standard_normal(conditional, key):
+    """The model is Transformed(Normal((T * D,)), glow): same log_prob, same samples."""
+    kx, kc, ks = jax.random.split(key, 3)
+    x = jax.random.normal(kx, (2, 8, POSE_DIM))
+    c = jax.random.normal(kc, (2, 8, CONTROL_DIM))
+    dist = conditional.distribution(8)
+    assert isinstance(dist, Transformed) and isinstance(dist.base, Normal)
+    assert dist.event_shape == (8 * POSE_DIM,)
+    np.testing.assert_allclose(dist.log_prob(x, context=c), log_prob(conditional, x, c), rtol=1e-6)
+    s = dist.sample(ks, (2,), context=c, temperature=0.5)
+    chex.assert_shape(s, (2, 8, POSE_DIM))
+    chex.assert_trees_all_close(s, conditional.sample(ks, c, temperature=0.5), atol=1e-6)
 
 
 def test_log_prob_batch_shapes_agree(conditional, key):

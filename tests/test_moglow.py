@@ -43,9 +43,12 @@ def _data(b=3, t=9, seed=1):
     return jax.random.normal(k1, (b, t, D)), jax.random.normal(k2, (b, t, C))
 
 
-@pytest.mark.parametrize("conditioner", ["lstm", "ff"])
-def test_sequence_pass_equals_frame_by_frame(conditioner):
-    model = _model(conditioner, layers=2)
+@pytest.mark.parametrize(
+    ("conditioner", "residual"), [("lstm", False), ("ff", False), ("lstm", True)]
+)
+def test_sequence_pass_equals_frame_by_frame(conditioner, residual):
+    """Training/scoring (sequence), per-frame scoring and the sampler run the same bijectors."""
+    model = _model(conditioner, layers=2, residual=residual)
     pose, control = _data()
     z_seq, ld_seq = jax.jit(lambda m, x, c: m.inverse_and_log_det(x, context=c, scope="window"))(
         model, pose, control
@@ -149,8 +152,9 @@ def test_log_prob_dropout_uses_key():
         model.log_prob(pose, control, dropout=0.7)
 
 
-def test_stream_step_equals_sample():
-    model = _model()
+@pytest.mark.parametrize("residual", [False, True])
+def test_stream_step_equals_sample(residual):
+    model = _model(residual=residual)
     _, control = _data(b=2, t=7)
     key = jax.random.key(5)
     seed = jax.random.normal(jax.random.key(6), (2, 5, D))
@@ -171,6 +175,24 @@ def test_stream_step_equals_sample():
     np.testing.assert_allclose(x0, model.generate(jnp.zeros((2, 7, D)), control), atol=1e-6)
     # samples follow the key
     assert not np.allclose(model.sample(jax.random.key(7), control), x)
+
+
+def test_base_density_is_the_distributions_one():
+    z = 2.0 * jax.random.normal(jax.random.key(0), (3, 4, D))
+    normal = _model()
+    np.testing.assert_allclose(
+        normal.base_log_prob(z), jax.scipy.stats.norm.logpdf(z).sum(-1), rtol=1e-5
+    )
+    student = _model(base="studentt", df=3.0)
+    np.testing.assert_allclose(
+        student.base_log_prob(z), jax.scipy.stats.t.logpdf(z, 3.0).sum(-1), rtol=1e-5
+    )
+    # the sampler draws its latents from the same density: fold_in(key, t) per frame
+    key, control = jax.random.key(4), jnp.zeros((2, 3, C))
+    x = student.sample(key, control, temperature=0.5)
+    want = 0.5 * student.base_density().sample(jax.random.fold_in(key, 0), (2,))
+    np.testing.assert_allclose(x[:, 0], student.generate(want[:, None], control[:, :1])[:, 0],
+                               atol=1e-6)  # fmt: skip
 
 
 @pytest.mark.parametrize("residual", [False, True])
@@ -224,6 +246,10 @@ def test_bfloat16_close_to_float32_and_student_t():
     lt = t.log_prob(pose, control)
     assert np.all(np.isfinite(lt)) and not np.allclose(lt, la)
     assert np.all(np.isfinite(t.sample(jax.random.key(0), control)))
+    # the bfloat16 sampler runs the same frame steps: close to the float32 one
+    xa, xb = a.sample(jax.random.key(1), control), b.sample(jax.random.key(1), control)
+    assert xb.dtype == jnp.float32
+    assert 0 < float(jnp.max(jnp.abs(xa - xb))) < 0.1 * float(jnp.max(jnp.abs(xa)))
 
 
 def test_clear_errors():

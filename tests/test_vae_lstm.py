@@ -27,6 +27,9 @@ TINY = dict(latent_dim=8, control_hidden=8, control_features=8, pose_hidden=8,
             pose_features=16, decoder_hidden=8)  # fmt: skip
 
 
+pytestmark = pytest.mark.strict_dtypes
+
+
 def _tiny(key=0, **kw) -> VAELSTM:
     return VAELSTM(**{"kernel": 5, **TINY, **kw}, rngs=nnx.Rngs(key))
 
@@ -290,6 +293,7 @@ def _windows(clips, t: int, hop: int):
     return np.stack(xs).astype(np.float32), np.stack(cs).astype(np.float32)
 
 
+@pytest.mark.standard_dtypes  # optax.adam
 def test_tiny_model_learns_synthetic_locomotion():
     synthetic = pytest.importorskip("motionflows.data.synthetic")
     t = 16

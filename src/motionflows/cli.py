@@ -74,13 +74,13 @@ def _output_folder(args, run_dir: Path, local: str, default: Path) -> Path:
 
 
 def cmd_train(args) -> int:
-    from motionflows import training
+    from motionflows.cli_train import run_train
 
-    return training.run_train(args.experiment, args)
+    return run_train(args.experiment, args)
 
 
 def cmd_eval(args) -> int:
-    from motionflows import runs, training
+    from motionflows import run, runs
 
     run_dir = runs.resolve_run_dir(args.run_dir)
     if args.batch_size is not None and args.batch_size < 1:
@@ -88,7 +88,7 @@ def cmd_eval(args) -> int:
     if args.data is None and (args.label or args.skeleton):
         raise RunError("--label and --skeleton go with --data (other takes to score)")
     out = _output_folder(args, run_dir, "evals", run_dir)
-    training.evaluate_run(
+    run.evaluate_run(
         run_dir,
         args.split,
         data=args.data,
@@ -129,7 +129,7 @@ def _sample_controls(args, fps: float) -> list[tuple[str, np.ndarray, np.ndarray
 
 
 def cmd_sample(args) -> int:
-    from motionflows import runs, training
+    from motionflows import run, runs
     from motionflows.pretrained.model import INFO_FILE
 
     run_dir = runs.resolve_run_dir(args.run_dir)
@@ -140,10 +140,8 @@ def cmd_sample(args) -> int:
             f"--num must be 1 .. {MAX_SAMPLES} and --seconds in (0, {MAX_SAMPLE_SECONDS:g}] "
             f"(got --num {args.num}, --seconds {args.seconds})"
         )
-    module, config, model, _ = training.load_run(
-        run_dir, checkpoint=args.checkpoint, load_data=False
-    )
-    std = training.load_standardizer(run_dir)
+    module, config, model, _ = run.load_run(run_dir, checkpoint=args.checkpoint, load_data=False)
+    std = run.load_standardizer(run_dir)
     fps = float(config.data.fps)
     temperature = args.temperature
     if temperature is None:  # the temperature the model was validated at, else 1
@@ -159,7 +157,7 @@ def cmd_sample(args) -> int:
     out = _output_folder(args, run_dir, "samples", run_dir / "samples")
     out.mkdir(parents=True, exist_ok=True)
     for name, control, truth in _sample_controls(args, fps):
-        pose = training.draw_samples(
+        pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )
         stem = f"{name}_T{temperature:g}_seed{args.seed}"
@@ -323,32 +321,27 @@ def cmd_data(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    if getattr(args, "out", None):
-        _folder(args.out, "--out")
-    try:
-        from motionflows import bench
-    except ImportError:
-        raise RunError("the benchmark (motionflows.bench) is not available yet") from None
-    return int(bench.main(args) or 0)
+    from motionflows import cli_bench
+
+    _folder(args.out, "--out")
+    return cli_bench.main(args)
 
 
 # ----------------------------------------------------------------------------- parser
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from motionflows.training import add_train_arguments
-
-    parser = _Parser(
-        prog="motionflows", description="Probabilistic, controllable motion models in JAX."
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    sub.required = True
+def _add_train(sub) -> None:
+    """The ``train`` command's flags."""
+    from motionflows.cli_train import add_train_arguments
 
     p = sub.add_parser("train", help="train an experiment (experiments/<name>.py)")
     p.add_argument("experiment", help="experiment name, e.g. moglow, glow_fixed, baselines")
     add_train_arguments(p)
     p.set_defaults(func=cmd_train)
 
+
+def _add_eval(sub) -> None:
+    """The ``eval`` command's flags."""
     p = sub.add_parser("eval", help="likelihood table of a run (writes eval_<split>.json)")
     p.add_argument("run_dir")
     p.add_argument("--split", default="test", choices=["train", "val", "test"])
@@ -365,6 +358,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=None)
     p.set_defaults(func=cmd_eval)
 
+
+def _add_sample(sub) -> None:
+    """The ``sample`` command's flags."""
     p = sub.add_parser("sample", help="sample motion for a control (npz + GIF)")
     p.add_argument("run_dir")
     p.add_argument(
@@ -391,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-gif", action="store_true", help="only write the npz")
     p.set_defaults(func=cmd_sample)
 
+
+def _add_render(sub) -> None:
+    """The ``render`` command's flags."""
     p = sub.add_parser(
         "render",
         help="GIF + control plot of a .bvh or .npz (pose, control), or a sample of a run "
@@ -402,6 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of a BVH file")
     p.set_defaults(func=cmd_render)
 
+
+def _add_export(sub) -> None:
+    """The ``export`` command's flags."""
     p = sub.add_parser("export", help="a shippable copy of a run (parameters, no optimiser)")
     p.add_argument("run_dir")
     p.add_argument("--out", required=True, help="folder to write (must be new or empty)")
@@ -412,6 +414,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing export")
     p.set_defaults(func=cmd_export)
 
+
+def _add_play(sub) -> None:
+    """The ``play`` command's flags."""
     p = sub.add_parser("play", help="steer a MoGlow character in real time from a web page")
     p.add_argument("run_dir", help="a run directory of a causal model, or pretrained:NAME")
     p.add_argument("--port", type=int, default=0, help="port to listen on (default: a free one)")
@@ -425,10 +430,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_play)
 
+
+def _add_runs(sub) -> None:
+    """The ``runs`` command's flags."""
     p = sub.add_parser("runs", help="table of runs with their best validation NLL")
     p.add_argument("--root", default="runs")
     p.set_defaults(func=cmd_runs)
 
+
+def _add_data(sub) -> None:
+    """The ``data`` command's flags."""
     p = sub.add_parser("data", help="data utilities: download bandai --dest DIR")
     dsub = p.add_subparsers(dest="data_command", metavar="ACTION", parser_class=_Parser)
     dsub.required = True
@@ -443,23 +454,41 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=cmd_data)
 
-    p = sub.add_parser("bench", help="compare every model on one split (BENCHMARK.md)")
-    try:
-        from motionflows import bench
 
-        bench.build_parser(p)
-    except (ImportError, AttributeError):
-        p.add_argument("--data", default="synthetic", help="synthetic | bandai | bvh:DIR")
-        p.add_argument("--models", default="glow_fixed,moglow,vae_lstm,gaussian,linear_ar")
-        p.add_argument("--budget", default="quick", choices=["smoke", "quick", "full"])
-        p.add_argument("--out", default="runs/bench")
+def _add_bench(sub) -> None:
+    """The ``bench`` command's flags."""
+    from motionflows import cli_bench
+
+    p = sub.add_parser("bench", help="compare every model on one split (BENCHMARK.md)")
+    cli_bench.build_parser(p)
     p.set_defaults(func=cmd_bench)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``motionflows`` parser: one sub-command per ``_add_<command>``."""
+    parser = _Parser(
+        prog="motionflows", description="Probabilistic, controllable motion models in JAX."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for add in (
+        _add_train,
+        _add_eval,
+        _add_sample,
+        _add_render,
+        _add_export,
+        _add_play,
+        _add_runs,
+        _add_data,
+        _add_bench,
+    ):
+        add(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``motionflows`` console script; returns the exit code."""
-    from motionflows.training import report_errors
+    from motionflows.cli_train import report_errors
 
     parser = build_parser()
     try:

@@ -61,7 +61,7 @@ def pretrained_demo(control_name: str, seconds: float, out: Path, *, gif: bool =
 
 def train_demo(args) -> int:
     """Train the quick preset on synthetic data, score it, sample and animate the control."""
-    from motionflows import training
+    from motionflows import run, training
     from motionflows.config import apply_overrides
     from motionflows.data.controls import load_control
     from motionflows.runs import resolve_experiment
@@ -86,11 +86,11 @@ def train_demo(args) -> int:
         print(f"demo: training stopped ({result.status}); see {run_dir}", file=sys.stderr)
         return 1
     print("\n== test-split likelihood", file=sys.stderr)
-    training.evaluate_run(run_dir, "test", dataset=dataset)
-    _, _, model, _ = training.load_run(run_dir, dataset=dataset)
+    run.evaluate_run(run_dir, "test", dataset=dataset)
+    _, _, model, _ = run.load_run(run_dir, dataset=dataset)
     fps = float(config.data.fps)
     control = load_control(args.control, args.seconds, fps)
-    pose = training.draw_samples(module, model, dataset.standardizer, control, seed=0)
+    pose = run.draw_samples(module, model, dataset.standardizer, control, seed=0)
     title = f"{module.NAME} quick: {args.control}"
     _write(pose[0], control, fps, run_dir / "samples", f"demo_{args.control}", title, args.gif)
     print(

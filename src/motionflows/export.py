@@ -3,7 +3,7 @@
 The export holds ``config.json``, ``standardizer.json``, ``metrics.jsonl``, the run's
 ``eval_*.json`` tables and ``checkpoints/best/<step>/`` with the model's parameters and
 other variables only (the optimiser state, two thirds of a checkpoint for Adam, is left
-out), so it loads with :func:`motionflows.training.load_run` and
+out), so it loads with :func:`motionflows.run.load_run` and
 :class:`motionflows.pretrained.PretrainedModel` like the run itself. ``pretrained.json``
 records the validated sampling temperature. An export of a model trained on the Bandai
 data carries that data's licence note.
@@ -48,7 +48,7 @@ def export_run(
     export; otherwise a non-empty ``out`` is refused.
     """
     from motionflows import runs
-    from motionflows.training import load_run
+    from motionflows.run import load_run
 
     run_dir = runs.check_run_dir(run_dir)
     out = Path(out)

@@ -2,6 +2,8 @@
 
 Direction: ``forward`` = latent -> data (sampling), ``inverse`` = data -> latent
 (likelihood); ``*_and_log_det`` also return log|det| of that direction with the batch shape.
+``forward_step`` / ``inverse_step`` run one frame (..., D) with an explicit carry
+(``initial_carry``), for autoregressive sampling, streaming and causal scoring.
 See :mod:`motionflows.bijectors.base` for the interface and :func:`initialize_from_data`
 for the explicit data-dependent initialisation.
 """
@@ -14,6 +16,7 @@ from motionflows.bijectors.base import (
     Inverse,
     Scan,
     check_event,
+    check_frame,
     data_init_mode,
     is_initializing,
 )
@@ -27,6 +30,7 @@ from motionflows.bijectors.coupling import (
     merge_halves,
     split_halves,
 )
+from motionflows.bijectors.difference import Difference
 from motionflows.bijectors.linear import DenseLinear, InvertibleLinear, Permute, Reverse
 from motionflows.bijectors.reshape import Split, Squeeze, squeeze_time, unsqueeze_time
 
@@ -37,6 +41,7 @@ __all__ = [
     "Bijector",
     "Chain",
     "DenseLinear",
+    "Difference",
     "Fixed",
     "Inverse",
     "InvertibleLinear",
@@ -49,6 +54,7 @@ __all__ = [
     "affine_to_data",
     "affine_to_latent",
     "check_event",
+    "check_frame",
     "coupling_sizes",
     "data_init_mode",
     "initialize_from_data",

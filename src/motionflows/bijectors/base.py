@@ -11,6 +11,18 @@ Events are sequences of shape (..., T, D) with any leading batch shape; every ``
 the batch shape (...). ``context`` is an array (..., T, C) aligned in time with the event, or
 None; every layer of a ``Chain`` / ``Scan`` receives the same context.
 
+Frame by frame, with an explicit carry (autoregressive sampling, streaming, causal scoring):
+
+* ``initial_carry(batch_shape=()) -> carry``  the state before frame 0 (a pytree),
+* ``forward_step(z_t, *, context_t=None, carry) -> (x_t, log|det dx_t/dz_t|, carry)``,
+* ``inverse_step(x_t, *, context_t=None, carry) -> (z_t, log|det dz_t/dx_t|, carry)``,
+
+with frames x_t (..., D), context_t (..., C) and log-dets of the batch shape (...). Running a
+step over t = 0 .. T-1 from ``initial_carry`` equals the sequence map (values and log-dets)
+for every causal bijector. Stateless, per-frame bijectors inherit steps that run the sequence
+map on one frame and pass the carry through; ``Chain`` and ``Scan`` thread one carry per layer
+(``Chain``: a tuple in list order; ``Scan``: the steps' carries stacked on a leading K axis).
+
 Data-dependent initialisation runs in an explicit "init mode" (see
 :func:`motionflows.bijectors.initialize_from_data`): while it is active, bijectors are run
 eagerly and layers with data-dependent parameters (``ActNorm``) set them from their input.
@@ -37,6 +49,7 @@ __all__ = [
     "Inverse",
     "Scan",
     "check_event",
+    "check_frame",
     "data_init_mode",
     "is_initializing",
 ]
@@ -115,6 +128,23 @@ def check_event(x: Any, num_channels: int | None, name: str, *, what: str = "inp
         )
 
 
+def check_frame(x_t: Any, name: str, *, what: str = "frame") -> None:
+    """Raise a clear ``ValueError`` unless ``x_t`` is one floating frame (..., D)."""
+    shape = getattr(x_t, "shape", None)
+    if shape is None or len(shape) < 1:
+        raise ValueError(
+            f"{name} expects one {what} of shape (..., D) (no time axis), got "
+            f"{type(x_t).__name__ if shape is None else tuple(shape)}"
+        )
+    if not jnp.issubdtype(x_t.dtype, jnp.floating):
+        raise ValueError(f"{name} expects a floating-point {what} (float32), got {x_t.dtype}")
+
+
+def _one_frame(a: Array | None) -> Array | None:
+    """(..., C) -> (..., 1, C): a frame as a one-frame sequence (None stays None)."""
+    return None if a is None else a[..., None, :]
+
+
 def _check_context(context: Any, x: Array, name: str) -> None:
     """A context, when given, is (..., T, C) with the event's T and a broadcastable batch."""
     if context is None:
@@ -151,6 +181,19 @@ class Bijector(nnx.Module):
     ``inverse_and_log_det`` (data -> latent); ``forward`` and ``inverse`` are derived.
     Every bijector is a Flax NNX module, hence a pytree: pass it straight to ``jax.jit``,
     ``jax.grad``, ``jax.vmap`` or ``jax.lax.scan``.
+
+    Examples:
+      >>> import jax, jax.numpy as jnp
+      >>> from motionflows import bijectors as bj
+      >>> flow = bj.Chain([bj.InvertibleLinear(3, key=jax.random.key(0)), bj.Difference(3)])
+      >>> z = jax.random.normal(jax.random.key(1), (2, 5, 3))     # (B, T, D) latents
+      >>> x, log_det = flow.forward_and_log_det(z)               # the whole sequence
+      >>> carry, frames = flow.initial_carry((2,)), []
+      >>> for t in range(5):                                    # the same, frame by frame
+      ...     x_t, ld_t, carry = flow.forward_step(z[:, t], carry=carry)
+      ...     frames.append(x_t)
+      >>> bool(jnp.allclose(jnp.stack(frames, 1), x, atol=1e-5))
+      True
     """
 
     def forward_and_log_det(self, x: Array, *, context: Array | None = None) -> tuple[Array, Array]:
@@ -168,6 +211,34 @@ class Bijector(nnx.Module):
     def inverse(self, y: Array, *, context: Array | None = None) -> Array:
         """Data -> latent."""
         return self.inverse_and_log_det(y, context=context)[0]
+
+    # -- one frame at a time (explicit carry)
+
+    def initial_carry(self, batch_shape: tuple[int, ...] = ()) -> Any:
+        """The carry before frame 0 for frames of batch shape ``batch_shape``: () here."""
+        del batch_shape
+        return ()
+
+    def forward_step(
+        self, x_t: Array, *, context_t: Array | None = None, carry: Any = None
+    ) -> tuple[Array, Array, Any]:
+        """Latent -> data for one frame: x_t (..., D) -> (y_t, log|det dy_t/dx_t| (...), carry).
+
+        ``carry=None`` starts from ``initial_carry(x_t.shape[:-1])``. This default is for
+        stateless per-frame maps: the sequence map on the one-frame sequence
+        x_t[..., None, :], the carry passed through. Bijectors that keep state override it.
+        """
+        check_frame(x_t, type(self).__name__)
+        y, ld = self.forward_and_log_det(_one_frame(x_t), context=_one_frame(context_t))
+        return y[..., 0, :], ld, self.initial_carry(x_t.shape[:-1]) if carry is None else carry
+
+    def inverse_step(
+        self, y_t: Array, *, context_t: Array | None = None, carry: Any = None
+    ) -> tuple[Array, Array, Any]:
+        """Data -> latent for one frame: y_t (..., D) -> (x_t, log|det dx_t/dy_t| (...), carry)."""
+        check_frame(y_t, type(self).__name__)
+        x, ld = self.inverse_and_log_det(_one_frame(y_t), context=_one_frame(context_t))
+        return x[..., 0, :], ld, self.initial_carry(y_t.shape[:-1]) if carry is None else carry
 
 
 def _zeros_batch(x: Array) -> Array:
@@ -223,9 +294,34 @@ class Chain(Bijector):
             total = ld if total is None else total + ld
         return y, total
 
+    def initial_carry(self, batch_shape=()):
+        """One carry per bijector, a tuple in list order."""
+        return tuple(b.initial_carry(batch_shape) for b in self.bijectors)
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        if carry is None:
+            carry = self.initial_carry(x_t.shape[:-1])
+        total, new = None, list(carry)
+        for i, b in enumerate(self.bijectors):
+            x_t, ld, new[i] = b.forward_step(x_t, context_t=context_t, carry=carry[i])
+            total = ld if total is None else total + ld
+        return x_t, total, tuple(new)
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        if carry is None:
+            carry = self.initial_carry(y_t.shape[:-1])
+        total, new = None, list(carry)
+        for i in reversed(range(len(self.bijectors))):
+            y_t, ld, new[i] = self.bijectors[i].inverse_step(
+                y_t, context_t=context_t, carry=carry[i]
+            )
+            total = ld if total is None else total + ld
+        return y_t, total, tuple(new)
+
 
 class Inverse(Bijector):
-    """The inverse of a bijector: ``Inverse(b).forward == b.inverse`` and vice versa."""
+    """The inverse of a bijector: ``Inverse(b).forward == b.inverse`` and vice versa
+    (the frame steps too; the carry is ``b``'s)."""
 
     def __init__(self, bijector: Bijector):
         self.bijector = bijector
@@ -235,6 +331,15 @@ class Inverse(Bijector):
 
     def inverse_and_log_det(self, y, *, context=None):
         return self.bijector.forward_and_log_det(y, context=context)
+
+    def initial_carry(self, batch_shape=()):
+        return self.bijector.initial_carry(batch_shape)
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        return self.bijector.inverse_step(x_t, context_t=context_t, carry=carry)
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        return self.bijector.forward_step(y_t, context_t=context_t, carry=carry)
 
 
 def _as_key(rngs: Any, key: Any = None) -> Array:
@@ -259,6 +364,20 @@ def _inverse_body(carry, step):
     h, total, context = carry
     h, ld = step.inverse_and_log_det(h, context=context)
     return (h, total + ld, context), None
+
+
+def _forward_step_body(acc, xs):
+    h, total, context_t = acc
+    step, carry = xs
+    h, ld, carry = step.forward_step(h, context_t=context_t, carry=carry)
+    return (h, total + ld, context_t), carry
+
+
+def _inverse_step_body(acc, xs):
+    h, total, context_t = acc
+    step, carry = xs
+    h, ld, carry = step.inverse_step(h, context_t=context_t, carry=carry)
+    return (h, total + ld, context_t), carry
 
 
 def _stack(steps: list[nnx.Module]) -> nnx.Module:
@@ -292,7 +411,9 @@ class Scan(Bijector):
       of size ``num_steps`` (e.g. built with ``nnx.vmap``).
     * ``Scan([step_0, ..., step_{K-1}])``: stacks equally structured step modules.
 
-    Attribute ``steps`` holds the stacked step module.
+    Attribute ``steps`` holds the stacked step module. Frame steps (``forward_step`` /
+    ``inverse_step``) scan over the K steps the same way; the carry is the K steps' carries
+    stacked on a leading K axis (``initial_carry``).
 
     During :func:`initialize_from_data` (init mode) the steps are run eagerly one by one
     (data -> latent order) and their updated parameters are written back into the stack.
@@ -377,6 +498,26 @@ class Scan(Bijector):
             _inverse_body, (y, _zeros_batch(y), context), self.steps, reverse=True
         )
         return y, total
+
+    def initial_carry(self, batch_shape=()):
+        """The K steps' initial carries, stacked: every leaf gets a leading K axis."""
+        return jax.vmap(lambda step: step.initial_carry(batch_shape))(self.steps)
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        if carry is None:
+            carry = self.initial_carry(x_t.shape[:-1])
+        acc = (x_t, jnp.zeros(x_t.shape[:-1], jnp.float32), context_t)
+        (x_t, total, _), carry = jax.lax.scan(_forward_step_body, acc, (self.steps, carry))
+        return x_t, total, carry
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        if carry is None:
+            carry = self.initial_carry(y_t.shape[:-1])
+        acc = (y_t, jnp.zeros(y_t.shape[:-1], jnp.float32), context_t)
+        (y_t, total, _), carry = jax.lax.scan(
+            _inverse_step_body, acc, (self.steps, carry), reverse=True
+        )
+        return y_t, total, carry
 
     def _run_eagerly(self, h, context, *, forward: bool):
         """Init mode: run the steps one by one in Python and write them back (stacked)."""

@@ -12,6 +12,12 @@ work as well as per-frame MLPs:
 
 x_a passes through unchanged. With a zero-initialised last conditioner layer a fresh
 step is a fixed per-channel scaling (h = 0: shift = 0, scale = sigmoid(2)).
+
+Frame steps (``forward_step`` / ``inverse_step``, see :mod:`motionflows.bijectors.base`) use
+the conditioner's own step when it has one, ``conditioner.step(x_a_t, context_t, carry) ->
+(h_t, carry)`` with ``conditioner.initial_carry(batch_shape)`` (a recurrent net's state is the
+coupling's carry); a conditioner without ``step`` is taken to be per-frame (h_t a function of
+x_a_t and context_t alone, as an MLP) and is called on the one-frame sequence.
 """
 
 from __future__ import annotations
@@ -21,7 +27,13 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from motionflows.bijectors.base import Bijector, _check_context, check_event
+from motionflows.bijectors.base import (
+    Bijector,
+    _check_context,
+    _one_frame,
+    check_event,
+    check_frame,
+)
 
 Array = jax.Array
 
@@ -121,6 +133,34 @@ class _Coupling(Bijector):
         h = jnp.broadcast_to(h, x_b.shape[:-1] + (want,))
         return x_a, x_b, h
 
+    def initial_carry(self, batch_shape=()):
+        """The conditioner's initial carry (``conditioner.initial_carry``), else ()."""
+        init = getattr(self.conditioner, "initial_carry", None)
+        return () if init is None else init(tuple(batch_shape))
+
+    def _condition_step(self, x_t: Array, context_t: Array | None, carry):
+        """One frame: (x_a_t, x_b_t, h_t, carry), h_t from the conditioner (step or per-frame)."""
+        check_frame(x_t, self._name)
+        if x_t.shape[-1] != self.num_channels:
+            raise ValueError(
+                f"{self._name} expects frames (..., {self.num_channels}), got {tuple(x_t.shape)}"
+            )
+        if carry is None:
+            carry = self.initial_carry(x_t.shape[:-1])
+        x_a, x_b = split_halves(x_t)
+        step = getattr(self.conditioner, "step", None)
+        if step is None:
+            h = self.conditioner(_one_frame(x_a), _one_frame(context_t))[..., 0, :]
+        else:
+            h, carry = step(x_a, context_t, carry)
+        want = self._outputs_per_channel * x_b.shape[-1]
+        if h.shape[-1] != want:
+            raise ValueError(
+                f"{self._name} conditioner step must return (..., {want}) for x_a_t of shape "
+                f"{tuple(x_a.shape)}, got {tuple(h.shape)}"
+            )
+        return x_a, x_b, jnp.broadcast_to(h, x_b.shape[:-1] + (want,)), carry
+
 
 class AffineCoupling(_Coupling):
     """Affine coupling (Glow / RealNVP) over channel halves; see the module docstring.
@@ -154,6 +194,16 @@ class AffineCoupling(_Coupling):
         x_b, ld = affine_to_data(z_b, shift, scale)
         return merge_halves(z_a, x_b), jnp.sum(ld, axis=-1)
 
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        x_a, x_b, h, carry = self._condition_step(y_t, context_t, carry)
+        z_b, ld = affine_to_latent(x_b, *affine_params(h, self.eps))
+        return merge_halves(x_a, z_b), ld, carry
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        z_a, z_b, h, carry = self._condition_step(x_t, context_t, carry)
+        x_b, ld = affine_to_data(z_b, *affine_params(h, self.eps))
+        return merge_halves(z_a, x_b), ld, carry
+
 
 class AdditiveCoupling(_Coupling):
     """Additive (volume-preserving, NICE) coupling: z_b = x_b + shift, log-det 0.
@@ -174,3 +224,11 @@ class AdditiveCoupling(_Coupling):
     def forward_and_log_det(self, x, *, context=None):
         z_a, z_b, shift = self._condition(x, context)
         return merge_halves(z_a, z_b - shift), self._zero(x)
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        x_a, x_b, shift, carry = self._condition_step(y_t, context_t, carry)
+        return merge_halves(x_a, x_b + shift), jnp.zeros(y_t.shape[:-1], jnp.float32), carry
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        z_a, z_b, shift, carry = self._condition_step(x_t, context_t, carry)
+        return merge_halves(z_a, z_b - shift), jnp.zeros(x_t.shape[:-1], jnp.float32), carry

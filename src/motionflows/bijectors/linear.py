@@ -11,7 +11,7 @@ from flax import nnx
 from jax.scipy.linalg import lu as _lu
 from jax.scipy.linalg import solve_triangular
 
-from motionflows.bijectors.base import Bijector, Fixed, check_event
+from motionflows.bijectors.base import Bijector, Fixed, check_event, check_frame
 
 Array = jax.Array
 
@@ -43,9 +43,11 @@ class InvertibleLinear(Bijector):
     data -> latent (``inverse``):  z_t = W x_t,       log|det| = T * sum(log_s)
     latent -> data (``forward``):  x_t = W^-1 z_t,    log|det| = -T * sum(log_s)
 
-    The latent -> data map uses two triangular solves (never a dense inverse). Initialised
-    from the LU decomposition of a random orthogonal matrix drawn from ``rngs`` (an
-    ``nnx.Rngs``; a raw ``key=`` works too).
+    The latent -> data map of a sequence uses two triangular solves (never a dense inverse).
+    Frame steps instead carry ``(W, W^-1)`` (``initial_carry``: W^-1 from two triangular
+    solves, once per stream), so each frame is one matrix-vector product either way.
+    Initialised from the LU decomposition of a random orthogonal matrix drawn from ``rngs``
+    (an ``nnx.Rngs``; a raw ``key=`` works too).
     """
 
     def __init__(
@@ -79,8 +81,39 @@ class InvertibleLinear(Bijector):
         p, l, u = self._factors()
         return p @ l @ u
 
+    def inverse_weight(self) -> Array:
+        """The (D, D) matrix W^-1 = U^-1 L^-1 P^T (latent -> data: x_t = W^-1 z_t)."""
+        p, l, u = self._factors()
+        a = solve_triangular(l, p.T, lower=True, unit_diagonal=True)
+        return solve_triangular(u, a, lower=False)
+
     def _log_det(self, x: Array) -> Array:
         return jnp.broadcast_to(x.shape[-2] * jnp.sum(self.log_s[...]), x.shape[:-2])
+
+    def initial_carry(self, batch_shape=()):
+        """``(W, W^-1)``, each (D, D): formed once, read by every frame step."""
+        del batch_shape
+        return self.weight(), self.inverse_weight()
+
+    def _frame_step(self, u_t: Array, carry, *, forward: bool):
+        check_frame(u_t, "InvertibleLinear")
+        if u_t.shape[-1] != self.num_channels:
+            raise ValueError(
+                f"InvertibleLinear expects frames (..., {self.num_channels}), "
+                f"got {tuple(u_t.shape)}"
+            )
+        if carry is None:
+            carry = self.initial_carry()
+        w = carry[1] if forward else carry[0]
+        ld = jnp.sum(self.log_s[...])
+        ld = jnp.broadcast_to(-ld if forward else ld, u_t.shape[:-1])
+        return u_t @ w.T, ld, carry
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        return self._frame_step(y_t, carry, forward=False)
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        return self._frame_step(x_t, carry, forward=True)
 
     def inverse_and_log_det(self, y, *, context=None):
         check_event(y, self.num_channels, "InvertibleLinear")

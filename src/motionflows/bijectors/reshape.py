@@ -72,6 +72,14 @@ class Squeeze(Bijector):
         y = unsqueeze_time(x, self.factor)
         return y, jnp.zeros(x.shape[:-2], jnp.result_type(x.dtype, jnp.float32))
 
+    def _no_step(self, *args, **kwargs):
+        raise ValueError(
+            "Squeeze groups frames over time, so it has no per-frame step (forward_step / "
+            "inverse_step); run the sequence maps (forward / inverse) on whole sequences"
+        )
+
+    forward_step = inverse_step = _no_step
+
 
 class Split(nnx.Module):
     """Multi-scale factor-out on the channel axis of (..., T, D) (no parameters).

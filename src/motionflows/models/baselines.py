@@ -21,7 +21,6 @@ can also be trained by gradient descent on ``-log_prob`` (their parameters are `
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Iterable
 
@@ -31,9 +30,8 @@ import numpy as np
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
-
-LOG_2PI = math.log(2.0 * math.pi)
 
 
 def _check_pose(pose: jax.Array, dim: int, name: str = "pose") -> jax.Array:
@@ -48,7 +46,7 @@ class DiagonalGaussian(nnx.Module):
     """Per-frame diagonal Gaussian ``x_t ~ N(mean, diag(exp(log_std))^2)``, frames independent.
 
     Parameters: ``mean`` (D,), ``log_std`` (D,). ``log_prob(pose)`` with pose (..., T, D)
-    returns (...,) nats summed over frames.
+    returns (...,) nats summed over frames. Each frame's density is :meth:`distribution`.
     """
 
     def __init__(self, pose_dim: int = POSE_DIM):
@@ -56,12 +54,13 @@ class DiagonalGaussian(nnx.Module):
         self.mean = nnx.Param(jnp.zeros((pose_dim,), jnp.float32))
         self.log_std = nnx.Param(jnp.zeros((pose_dim,), jnp.float32))
 
+    def distribution(self) -> Normal:
+        """The density of one frame, ``Normal((D,), loc=mean, log_scale=log_std)``."""
+        return Normal((self.pose_dim,), loc=self.mean[...], log_scale=self.log_std[...])
+
     def frame_log_prob(self, pose: jax.Array) -> jax.Array:
         """Log-density of each frame: pose (..., T, D) -> (..., T)."""
-        pose = _check_pose(pose, self.pose_dim)
-        log_std = self.log_std[...]
-        z = (pose - self.mean[...]) * jnp.exp(-log_std)
-        return -0.5 * jnp.sum(z**2, -1) - jnp.sum(log_std) - 0.5 * self.pose_dim * LOG_2PI
+        return self.distribution().log_prob(_check_pose(pose, self.pose_dim))
 
     def log_prob(self, pose: jax.Array, control: jax.Array | None = None, *, skip: int = 0):
         """Sum of the frame log-densities of frames skip..T-1: (..., T, D) -> (...,)."""
@@ -71,8 +70,7 @@ class DiagonalGaussian(nnx.Module):
     def sample(self, key: jax.Array, shape: tuple[int, int], *, temperature: float = 1.0):
         """Draw poses of shape ``shape + (D,)`` = (B, T, D)."""
         check_temperature(temperature, "DiagonalGaussian.sample")
-        eps = jax.random.normal(key, tuple(shape) + (self.pose_dim,), jnp.float32)
-        return self.mean[...] + temperature * jnp.exp(self.log_std[...]) * eps
+        return self.distribution().sample(key, tuple(shape), temperature=temperature)
 
 
 class LinearGaussianAR(nnx.Module):
@@ -138,14 +136,16 @@ class LinearGaussianAR(nnx.Module):
         return jnp.concatenate(parts, axis=-1)
 
     def frame_log_prob(self, pose: jax.Array, control: jax.Array) -> jax.Array:
-        """Exact log p(x_t | h_t) of every frame with a zero history: -> (B, T)."""
+        """Exact log p(x_t | h_t) of every frame with a zero history: -> (B, T).
+
+        The whitened residual y = L^-1 (x_t - W^T h_t) is standard normal, so
+        log p(x_t | h_t) = log N(y; 0, I) - sum(log diag L).
+        """
         h = self.features(pose, control)
         resid = pose - h @ self.weight[...]
         chol = self.cholesky()
         y = jax.scipy.linalg.solve_triangular(chol, resid[..., None], lower=True)[..., 0]
-        return (
-            -0.5 * jnp.sum(y**2, -1) - jnp.sum(self.log_diag[...]) - 0.5 * self.pose_dim * LOG_2PI
-        )
+        return Normal((self.pose_dim,)).log_prob(y) - jnp.sum(self.log_diag[...])
 
     def log_prob(self, pose: jax.Array, control: jax.Array, *, skip: int = 0) -> jax.Array:
         """Sum of log p(x_t | h_t) over frames skip..T-1: -> (B,). With ``skip=0`` this is
@@ -178,7 +178,7 @@ class LinearGaussianAR(nnx.Module):
                 hist = hist.at[:, tau - s :].set(history[:, -s:].astype(jnp.float32))
         cp = jnp.concatenate([jnp.zeros((b, tau, self.control_dim), control.dtype), control], 1)
         weight, chol = self.weight[...], self.cholesky()
-        eps = jax.random.normal(key, (t, b, d), jnp.float32) * temperature
+        eps = Normal((d,)).sample(key, (t, b), temperature=temperature)  # whitened residuals
 
         def step(hist, inputs):
             i, e = inputs

@@ -28,13 +28,13 @@ Latents. ``encode`` returns one flat array (..., T * D): the factored parts in l
 (each flattened time-major from (T_l, d_l)) followed by the last level's output. Use
 :meth:`Glow.latent_parts` to cut it into its (..., T_l, d_l) pieces.
 
-Likelihood: log p(x | c) = sum N(eps; 0, 1) + log|det d eps / d x| in the units of x (the
-model is trained on standardised data, so those are standardised units).
+Likelihood: the model is the distribution ``Transformed(Normal((T * D,)), glow)``
+(:meth:`Glow.distribution`), so log p(x | c) = log N(eps; 0, I) + log|det d eps / d x| in
+the units of x (the model is trained on standardised data, so those are standardised units).
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import jax
@@ -52,6 +52,7 @@ from motionflows.bijectors import (
     unsqueeze_time,
 )
 from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
+from motionflows.distributions import Normal, Transformed
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.conv import ConvNet, TimeConv
 
@@ -60,12 +61,11 @@ Array = jax.Array
 __all__ = ["Glow", "standard_normal_log_prob"]
 
 PRIORS = ("standard", "learned")
-_LOG_2PI = math.log(2.0 * math.pi)
 
 
 def standard_normal_log_prob(z: Array) -> Array:
     """sum over the last axis of log N(z; 0, 1): (..., N) -> (...)."""
-    return -0.5 * jnp.sum(jnp.square(z), axis=-1) - 0.5 * z.shape[-1] * _LOG_2PI
+    return Normal((None,)).log_prob(z)
 
 
 def _normalize_dtype(dtype: Any) -> str | None:
@@ -348,10 +348,18 @@ class Glow(nnx.Module):
         """Flat latents (..., T * D) -> poses (..., T, D); the exact inverse of ``encode``."""
         return self.forward_and_log_det(z, context=control)[0]
 
+    def distribution(self, length: int | None = None) -> Transformed:
+        """This model as a distribution over windows: ``Transformed(Normal((T * D,)), self)``.
+
+        The base is the standard normal over the flat latents (..., T * D) of ``encode``;
+        ``length`` T = None leaves their size open (enough for ``log_prob``; ``sample``
+        needs it).
+        """
+        return Transformed(Normal((None if length is None else length * self.pose_dim,)), self)
+
     def log_prob(self, x: Array, control: Array | None = None) -> Array:
         """log p(x | control) per window (...,) in nats, in the units of x (all T frames)."""
-        z, log_det = self.inverse_and_log_det(x, context=control)
-        return standard_normal_log_prob(z) + log_det
+        return self.distribution().log_prob(x, context=control)
 
     def sample(
         self,
@@ -398,5 +406,4 @@ class Glow(nnx.Module):
         check_temperature(temperature, "Glow.sample")
         if any(n == 0 for n in batch):
             raise ValueError(f"Glow.sample: the batch is empty (shape {batch}); ask for >= 1")
-        eps = jax.random.normal(key, batch + (t * self.pose_dim,), jnp.float32)
-        return self.decode(temperature * eps, control)
+        return self.distribution(t).sample(key, batch, context=control, temperature=temperature)

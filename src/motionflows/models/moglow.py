@@ -16,7 +16,8 @@ to and including c_t, poses first::
                      shift = h[0::2], scale = sigmoid(h[1::2] + 2) + 1e-6,
                      z_b = (v_b + shift) * scale
 
-and the base density is N(0, I) per frame (option: a standard Student-t). Each flow step's
+and the base density is N(0, I) per frame (option: a standard Student-t; both from
+:mod:`motionflows.distributions`). Each flow step's
 coupling LSTM (2 layers x 512 units by default) carries its own state along time: zero at
 the start of a window in training/scoring, carried frame by frame in sampling.
 
@@ -39,8 +40,12 @@ per (window, t) with probability p, without rescaling; controls and z_a are neve
 
 Sampling and streaming
 ----------------------
-:meth:`MoGlow.sample` is one ``lax.scan`` over frames whose carry holds all K LSTM states
-and the pose/control history; the inverses of the K 1x1 maps are formed once per call.
+:meth:`MoGlow.sample` is one ``lax.scan`` over frames; each frame is one
+``frame_flow().forward_step`` (the bijectors' frame step, whose explicit carry holds the K
+LSTM states and the K 1x1 maps with their inverses, formed once per stream), so training
+(``flow.inverse_and_log_det``), per-frame scoring (``inverse_step``) and sampling run the
+same bijector code. With ``residual`` a :class:`motionflows.bijectors.Difference` follows
+the K steps (its carry: x_{t-1}).
 The latent of frame t (counted from the start of the stream) is
 ``temperature * N(0, I)`` drawn with ``jax.random.fold_in(key, t)``; :meth:`stream_step`
 uses the same rule with ``state.t``, so passing the same ``key`` at every step reproduces
@@ -56,18 +61,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
-from jax.scipy.linalg import solve_triangular
 
 from motionflows.bijectors import (
     ActNorm,
     AffineCoupling,
+    Bijector,
     Chain,
+    Difference,
     InvertibleLinear,
     Scan,
-    affine_params,
     coupling_sizes,
 )
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.distributions import Normal, StudentT
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.lstm import LSTM
 from motionflows.nets.precision import matmul
@@ -85,8 +91,6 @@ __all__ = [
     "import_stylegestures",
     "load_stylegestures_checkpoint",
 ]
-
-LOG_2PI = math.log(2.0 * math.pi)
 
 
 # ----------------------------------------------------------------------------- conditioners
@@ -256,17 +260,17 @@ def previous_frames(pose: Array, tau: int, scope: str = "official") -> Array:
 class StreamState(NamedTuple):
     """Carry of the frame-by-frame sampler (a pytree; jit-friendly).
 
-    carry: the K coupling-LSTM states, each array with a leading K axis (K, B, H).
+    carry: the frame carry of the flow (:meth:`MoGlow.initial_carry`): per step, with a
+      leading K axis, the coupling-LSTM states (K, B, H) and the 1x1 map with its inverse
+      (K, D, D); with ``residual`` also the previous pose (B, D).
     poses: (B, tau, D) the last tau poses; controls: (B, tau, C) the last tau controls.
     t: int32 scalar, frames produced so far (the key of frame t is fold_in(key, t)).
-    inv_w: (K, D, D) the inverses of the K 1x1 maps, formed once in ``init_stream``.
     """
 
     carry: Any
     poses: Array
     controls: Array
     t: Array
-    inv_w: Array
 
 
 def _step_factory(pose_dim, cond_dim, hidden, num_layers, conditioner, compute_dtype, eps):
@@ -391,18 +395,15 @@ class MoGlow(nnx.Module):
 
     # -- base density
 
+    def base_density(self) -> Normal | StudentT:
+        """The per-frame base density over (D,): standard normal or standard Student-t."""
+        if self.base == "normal":
+            return Normal((self.pose_dim,))
+        return StudentT((self.pose_dim,), df=self.df)
+
     def base_log_prob(self, z: Array) -> Array:
         """Per-frame base log-density summed over channels: (..., D) -> (...)."""
-        if self.base == "normal":
-            return -0.5 * jnp.sum(z * z + LOG_2PI, axis=-1)
-        df = self.df
-        const = math.lgamma(0.5 * (df + 1.0)) - math.lgamma(0.5 * df) - 0.5 * math.log(math.pi * df)
-        return jnp.sum(const - 0.5 * (df + 1.0) * jnp.log1p(z * z / df), axis=-1)
-
-    def _noise(self, key: Array, shape: tuple[int, ...]) -> Array:
-        if self.base == "normal":
-            return jax.random.normal(key, shape, jnp.float32)
-        return jax.random.t(key, self.df, shape, jnp.float32)
+        return self.base_density().log_prob(z)
 
     # -- sequence pass (training, scoring)
 
@@ -430,8 +431,9 @@ class MoGlow(nnx.Module):
         targets, cond = build_conditions(
             pose, context, self.tau, scope=scope, dropout=dropout, key=key
         )
-        if self.residual:
-            targets = targets - previous_frames(pose, self.tau, scope)
+        if self.residual:  # the changes x_t - x_{t-1} of the target frames (log-det 0)
+            changes = Difference(self.pose_dim).inverse(pose)
+            targets = changes[..., changes.shape[-2] - targets.shape[-2] :, :]
         return self.flow.inverse_and_log_det(targets, context=cond)
 
     def log_prob(
@@ -465,76 +467,34 @@ class MoGlow(nnx.Module):
         """Scored frames per window of ``num_frames`` frames."""
         return num_frames - self.tau if scope == "official" else num_frames
 
-    # -- frame-by-frame maps
+    # -- frame-by-frame maps (the bijectors' frame steps)
 
-    def inverse_weights(self) -> Array:
-        """(K, D, D): W_k^-1 = U^-1 L^-1 P^T of every 1x1 map, two triangular solves each."""
-        lin = self.flow.steps.bijectors[1]
-        d = self.pose_dim
-        eye = jnp.eye(d, dtype=jnp.float32)
-        p = jax.lax.stop_gradient(lin.P[...])
-        sign = jax.lax.stop_gradient(lin.sign_s[...])
-        lower = jnp.tril(lin.lower[...], -1) + eye
-        upper = jnp.triu(lin.upper[...], 1) + jax.vmap(jnp.diag)(sign * jnp.exp(lin.log_s[...]))
-
-        def inv(args):
-            p, l, u = args
-            a = solve_triangular(l, p.T, lower=True, unit_diagonal=True)
-            return solve_triangular(u, a, lower=False)
-
-        return jax.lax.map(inv, (p, lower, upper))
+    def frame_flow(self) -> Bijector:
+        """The per-frame map latent z_t -> pose x_t given cond_t: the K steps (``flow``),
+        then, with ``residual``, a :class:`~motionflows.bijectors.Difference` (x_t = u_t +
+        x_{t-1}). Its ``forward_step`` samples a frame, its ``inverse_step`` scores one."""
+        if self.residual:
+            return Chain([self.flow, Difference(self.pose_dim)])
+        return self.flow
 
     def initial_carry(self, batch: int):
-        """Zero LSTM states of all K steps: a pytree of (K, batch, H) arrays."""
-        k = self.num_steps
-        if self.conditioner == "ff":
-            return ()
-        zeros = jnp.zeros((k, batch, self.hidden), jnp.float32)
-        return tuple((zeros, zeros) for _ in range(self.num_layers))
+        """The carry of :meth:`frame_flow` before frame 0 for ``batch`` sequences: zero LSTM
+        states and the K 1x1 maps with their inverses (leading K axis), and with
+        ``residual`` a zero previous pose (B, D)."""
+        return self.frame_flow().initial_carry((int(batch),))
 
-    def _frame_to_data(self, z_t: Array, cond_t: Array, carry, inv_w: Array):
-        """Latent -> data for one frame: z_t (B, D) -> (x_t (B, D), new carry).
-
-        Runs the K steps in the forward (sampling) order: step 0 first, as ``Scan``.
-        """
-
-        def body(x, xs):
-            step, state, w_inv = xs
-            coupling, _, actnorm = step.bijectors
-            z_a, z_b = x[..., : self.pose_dim // 2], x[..., self.pose_dim // 2 :]
-            h, state = coupling.conditioner.step(z_a, cond_t, state)
-            shift, scale = affine_params(h, coupling.eps)
-            x = jnp.concatenate([z_a, z_b / scale - shift], axis=-1)
-            x = x @ w_inv.T
-            x = actnorm.forward(x[..., None, :])[..., 0, :]
-            return x, state
-
-        x, carry = jax.lax.scan(body, z_t, (self.flow.steps, carry, inv_w))
-        return x, carry
+    def inverse_weights(self) -> Array:
+        """(K, D, D): W_k^-1 of every 1x1 map (``InvertibleLinear.inverse_weight``)."""
+        linear = self.flow.steps.bijectors[1]
+        return jax.vmap(lambda lin: lin.inverse_weight())(linear)
 
     def _frame_to_latent(self, x_t: Array, cond_t: Array, carry):
-        """Data -> latent for one frame: (z_t (B, D), log_det (B,), new carry).
+        """Data -> latent for one frame: x_t (B, D) -> (z_t (B, D), log_det (B,), new carry).
 
-        Runs the K steps in the normalising order (step K-1 first), as ``Scan``.
+        ``frame_flow().inverse_step``; run over t from :meth:`initial_carry` it equals
+        :meth:`inverse_and_log_det` with ``scope="window"``, frame by frame.
         """
-
-        def body(acc, xs):
-            y, ld = acc
-            step, state = xs
-            coupling, linear, actnorm = step.bijectors
-            y, ld_a = actnorm.inverse_and_log_det(y[..., None, :])
-            y, ld_l = linear.inverse_and_log_det(y)
-            y = y[..., 0, :]
-            y_a, y_b = y[..., : self.pose_dim // 2], y[..., self.pose_dim // 2 :]
-            h, state = coupling.conditioner.step(y_a, cond_t, state)
-            shift, scale = affine_params(h, coupling.eps)
-            y = jnp.concatenate([y_a, (y_b + shift) * scale], axis=-1)
-            ld = ld + ld_a + ld_l + jnp.sum(jnp.log(scale), axis=-1)
-            return (y, ld), state
-
-        ld0 = jnp.zeros(x_t.shape[:-1], jnp.float32)
-        (z, ld), carry = jax.lax.scan(body, (x_t, ld0), (self.flow.steps, carry), reverse=True)
-        return z, ld, carry
+        return self.frame_flow().inverse_step(x_t, context_t=cond_t, carry=carry)
 
     # -- sampling and streaming
 
@@ -570,13 +530,10 @@ class MoGlow(nnx.Module):
         tau are used; fewer are left-padded with zeros). seed_control likewise (B, S, C).
         """
         poses, controls = self._seed(int(batch), seed_history, seed_control)
-        return StreamState(
-            carry=self.initial_carry(int(batch)),
-            poses=poses,
-            controls=controls,
-            t=jnp.zeros((), jnp.int32),
-            inv_w=self.inverse_weights(),
-        )
+        carry = self.initial_carry(int(batch))
+        if self.residual:  # the Difference's carry: the pose before the first new frame
+            carry = (carry[0], poses[:, -1])
+        return StreamState(carry=carry, poses=poses, controls=controls, t=jnp.zeros((), jnp.int32))
 
     def _advance(self, state: StreamState, control_t: Array, z_t: Array):
         batch = control_t.shape[0]
@@ -588,15 +545,12 @@ class MoGlow(nnx.Module):
             ],
             axis=-1,
         )
-        x_t, carry = self._frame_to_data(z_t, cond_t, state.carry, state.inv_w)
-        if self.residual:
-            x_t = x_t + state.poses[:, -1]
+        x_t, _, carry = self.frame_flow().forward_step(z_t, context_t=cond_t, carry=state.carry)
         new = StreamState(
             carry=carry,
             poses=jnp.concatenate([state.poses[:, 1:], x_t[:, None]], axis=1),
             controls=jnp.concatenate([state.controls[:, 1:], control_t[:, None]], axis=1),
             t=state.t + 1,
-            inv_w=state.inv_w,
         )
         return x_t, new
 
@@ -621,8 +575,8 @@ class MoGlow(nnx.Module):
             )
         control_t = check_input(control_t, "control_t", "MoGlow.stream_step")
         check_temperature(temperature, "MoGlow.stream_step")
-        z_t = temperature * self._noise(
-            jax.random.fold_in(key, state.t), (control_t.shape[0], self.pose_dim)
+        z_t = self.base_density().sample(
+            jax.random.fold_in(key, state.t), (control_t.shape[0],), temperature=temperature
         )
         return self._advance(state, control_t, z_t)
 

@@ -42,15 +42,14 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
+from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
-
-LOG_2PI = math.log(2.0 * math.pi)
 
 
 def diag_normal_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
     """Elementwise log N(x; mean, exp(log_std)^2) (sum it yourself)."""
-    return -0.5 * (jnp.square((x - mean) * jnp.exp(-log_std)) + LOG_2PI) - log_std
+    return Normal((), loc=mean, log_scale=log_std).log_prob(x)
 
 
 def kl_to_standard_normal(mean: jax.Array, log_std: jax.Array) -> jax.Array:
@@ -249,9 +248,13 @@ class VAELSTM(nnx.Module):
             return self.out_log_std[...]
         return jnp.zeros((POSE_DIM,), jnp.float32)
 
+    def latent_prior(self) -> Normal:
+        """p(z) = N(0, I) over the (N, D) latents of a window, any number N of pooled steps."""
+        return Normal((None, self.latent_dim))
+
     def log_likelihood(self, x: jax.Array, mean: jax.Array) -> jax.Array:
         """log p(x | z, c) summed over frames and channels: (B, T, 63) -> (B,)."""
-        return diag_normal_log_prob(x, mean, self.output_log_std()).sum(axis=(1, 2))
+        return Normal((None, POSE_DIM), loc=mean, log_scale=self.output_log_std()).log_prob(x)
 
     # ------------------------------------------------------------------ objectives
     def elbo_terms(
@@ -291,12 +294,14 @@ class VAELSTM(nnx.Module):
         x, c = self._check(x, c, "VAELSTM.iwae_bound")
         h = self.encode_control(c)
         mu, log_std = self.posterior(x)
+        prior = self.latent_prior()
 
         def one(k):
             eps = jax.random.normal(k, mu.shape, mu.dtype)
             z = mu + jnp.exp(log_std) * eps
-            log_q = (-0.5 * (jnp.square(eps) + LOG_2PI) - log_std).sum(axis=(1, 2))
-            log_p = (-0.5 * (jnp.square(z) + LOG_2PI)).sum(axis=(1, 2))
+            # q(z | x) through the reparameterisation: log N(eps; 0, I) - sum(log sigma)
+            log_q = prior.log_prob(eps) - log_std.sum(axis=(1, 2))
+            log_p = prior.log_prob(z)
             return self.log_likelihood(x, self.decode(self.canvas(z, h))) + log_p - log_q
 
         keys = jax.random.split(key, num_samples)
@@ -323,12 +328,13 @@ class VAELSTM(nnx.Module):
         mu, log_std = self.posterior(x)
         mu1, ls1 = mu[:, :1], log_std[:, :1]
         rest = jnp.zeros((x.shape[0], h.shape[1] - 1, self.latent_dim), mu.dtype)
+        prior = self.latent_prior()
 
         def one(k):
             eps = jax.random.normal(k, mu1.shape, mu1.dtype)
             z1 = mu1 + jnp.exp(ls1) * eps
-            log_q = (-0.5 * (jnp.square(eps) + LOG_2PI) - ls1).sum(axis=(1, 2))
-            log_p = (-0.5 * (jnp.square(z1) + LOG_2PI)).sum(axis=(1, 2))
+            log_q = prior.log_prob(eps) - ls1.sum(axis=(1, 2))
+            log_p = prior.log_prob(z1)
             canvas = self.canvas(jnp.concatenate([z1, rest], axis=1), h, recurrent=True)
             return self.log_likelihood(x, self.decode(canvas)) + log_p - log_q
 

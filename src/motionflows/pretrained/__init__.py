@@ -33,7 +33,13 @@ __all__ = ["MODELS_DIR", "PretrainedModel", "available", "load", "path"]
 
 
 def available() -> list[str]:
-    """Names of the shipped models, sorted."""
+    """Names of the shipped models, sorted.
+
+    Examples:
+      >>> from motionflows import pretrained
+      >>> "moglow-bandai" in pretrained.available()
+      True
+    """
     if not MODELS_DIR.is_dir():
         return []
     return sorted(p.name for p in MODELS_DIR.iterdir() if (p / "config.json").is_file())
@@ -49,5 +55,16 @@ def path(name: str) -> Path:
 
 
 def load(name: str) -> PretrainedModel:
-    """The shipped model ``name`` as a :class:`PretrainedModel` (data units in and out)."""
+    """The shipped model ``name`` as a :class:`PretrainedModel` (data units in and out).
+
+    Examples:
+      >>> import numpy as np
+      >>> from motionflows import pretrained
+      >>> model = pretrained.load("moglow-bandai")
+      >>> control = np.zeros((2, 12, 3), np.float32)   # (B, T, 3): m/frame, m/frame, rad/frame
+      >>> control[..., 0] = 0.05                        # walk forward at 1 m/s (20 fps)
+      >>> pose = model.sample(control, seed=0)          # (B, T, 63) joint positions, metres
+      >>> pose.shape, model.log_prob(pose, control).shape   # nats per frame in metres
+      ((2, 12, 63), (2,))
+    """
     return PretrainedModel.from_run(path(name))

@@ -1,0 +1,86 @@
+"""``motionflows bench --estimate``: project a budget's training time on this machine."""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from motionflows.bench.budgets import bench_config, load_experiment, parse_data_spec, parse_models
+from motionflows.bench.reuse import log
+from motionflows.bench.speed import describe_machine
+
+
+def estimate_training(
+    data: str = "synthetic",
+    models: str | Sequence[str] | None = None,
+    budget: str = "full",
+    *,
+    probe_steps: int = 4,
+    progress=print,
+) -> dict:
+    """Project the training time of a budget on this machine without running it.
+
+    For each model, trains ``probe_steps`` steps of the exact config the bench would train
+    (in a temporary folder, through ``motionflows.training.train``) and multiplies the median
+    steady-state seconds per step (the first step, which compiles, is dropped) by the
+    config's ``train.steps``. Validation passes during training are not included. Returns
+    ``{"models": {model: {"seconds_per_step", "steps", "projected_hours", ...}},
+    "total_hours": ...}``.
+    """
+    data_cfg = parse_data_spec(data, budget)
+    dataset = data_cfg.load()
+    out: dict[str, Any] = {"budget": budget, "data": data, "machine": describe_machine()}
+    out["models"] = {}
+    for name in parse_models(models):
+        exp = load_experiment(name)
+        config, prov = bench_config(name, budget, data_cfg, exp)
+        entry = _probe(exp, config, prov["preset"], dataset, probe_steps, progress, name)
+        out["models"][name] = entry
+        log(progress, f"{name}: {entry}")
+    out["total_hours"] = sum(e["projected_hours"] for e in out["models"].values())
+    return out
+
+
+def _probe(exp, config, preset: str, dataset, probe_steps: int, progress, name: str) -> dict:
+    """Time a few training steps of ``config`` (all of a closed-form fit)."""
+    from motionflows import training
+    from motionflows.runs import read_metrics
+
+    steps = int(config.train.steps)
+    probe = dataclasses.replace(
+        config,
+        train=dataclasses.replace(
+            config.train, steps=max(probe_steps, 2) if steps > 0 else 0, log_every=1,
+            eval_every=10**9, eval_batches=1, checkpoint_every=10**9,
+        ),
+    )  # fmt: skip
+    log(progress, f"{name}: timing {probe.train.steps} steps of the {preset} config")
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        training.train(
+            exp, probe, run_dir=Path(tmp) / "probe", preset=preset, dataset=dataset, progress=False
+        )
+        wall = time.perf_counter() - t0
+        rows = read_metrics(Path(tmp) / "probe")
+    if steps == 0:
+        return {
+            "steps": 0,
+            "seconds_per_step": None,
+            "projected_hours": wall / 3600,
+            "note": "closed-form fit (timed in full)",
+        }
+    rates = [r["steps_per_s"] for r in rows if isinstance(r.get("steps_per_s"), int | float)]
+    sec = 1.0 / float(np.median(rates[1:] or rates))
+    return {
+        "steps": steps,
+        "seconds_per_step": sec,
+        "batch_size": int(config.train.batch_size),
+        "projected_hours": sec * steps / 3600,
+        "probe_wall_s": wall,
+    }

@@ -1,0 +1,370 @@
+"""The benchmark's report: ``BENCHMARK.md`` from a results dict.
+
+Everything here reads the JSON-able ``results`` dict that :func:`motionflows.bench.run_benchmark`
+builds (and writes as ``results.json``), so a report can be regenerated from ``results.json``
+alone: ``write_markdown(json.load(open("results.json")), "BENCHMARK.md")``.
+
+Tables keep one unit per column: NLL in nats/frame in metres (standardiser Jacobian included)
+and NLL in bits/frame in standardised space are separate columns, and the scored frames are
+named in every row. Bounds (ELBO, IWAE-K) are marked; for a bound the NLL column holds the
+bound on the NLL (an upper bound: the true NLL is at most this). Every scope is described by
+the experiment that scores it (its ``SCOPES``), so the report names no model.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from motionflows.bench.scoring import DIVERGED_METRES
+
+MOTION_NOTE = (
+    "Foot sliding: mean horizontal world speed of a foot (mean of ankle and toe) while its "
+    "lowest joint is within 1.5 cm of the window's floor (the 5th percentile of the feet's "
+    "heights, clipped to +-5 cm) at two consecutive frames, with the contact rate beside it "
+    "(height only: a foot dragged along the floor slides); skate ratio: the fraction of those "
+    "contact steps faster than 0.5 m/s (2.5 cm/frame at 20 fps); bone-length std: the std "
+    "over time of each bone's length, mean over bones; jerk: mean |d^3x/dt^3| of the joints in "
+    "world coordinates (root trajectory integrated from the control); FD: Frechet distance "
+    "between Gaussians fitted to real and generated poses (63-d) and 3-frame pose windows "
+    "(189-d), against the same test windows; diversity: mean per-joint distance between pairs "
+    "of samples drawn for one control (the first sampled test control); for the ground truth, "
+    "the natural diversity: the mean per-joint distance between each real test window and "
+    "the window of another take whose control is closest (RMS over frames, channels "
+    "divided by their std); pose / motion error: "
+    "Habibie et al.'s errors (root-relative joints / world joints after integrating the "
+    "control) between one sample and the test motion, averaged over the report times "
+    "(their frames 70, 90, 120, 160, 210 at 60 fps, at this frame rate, those inside the "
+    "window). The ground-truth row scores the test motion itself (errors and FD are 0 by "
+    "construction). Diverged samples: the fraction holding NaN/inf or a joint more than "
+    f"{DIVERGED_METRES:g} m from the root (a flow's inverse can blow up far from its training "
+    "data); the other metrics are over the remaining samples."
+)
+"""The motion section's definitions of its metrics (printed under the table)."""
+
+
+NATS = "nats_per_frame_metres"
+BITS = "bits_per_frame_std"
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    if value is None:
+        return "n/a"
+    if isinstance(value, str):
+        return value
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if not math.isfinite(v):
+        return str(v)
+    if abs(v) < 0.5 * 10 ** (-digits):
+        return f"{0:.{digits}f}"
+    if abs(v) >= 1e7:
+        return f"{v:.3g}"
+    return f"{v:,.{digits}f}".replace(",", " ")
+
+
+def _ci(stats: dict | None, unit: str) -> str:
+    """'mean [lo, hi]' of one unit of a likelihood stats dict."""
+    if not stats or unit not in stats:
+        return "n/a"
+    lo, hi = stats[unit + "_ci95"]
+    return f"{_fmt(stats[unit])} [{_fmt(lo)}, {_fmt(hi)}]"
+
+
+def _gap(stats_test: dict | None, stats_train: dict | None, unit: str) -> str:
+    if not stats_test or not stats_train or unit not in stats_test or unit not in stats_train:
+        return "n/a"
+    return _fmt(stats_test[unit] - stats_train[unit])
+
+
+def _ordered(lik: dict) -> list[tuple[str, dict]]:
+    """Scopes in table order: ``window`` first, exact scores, then bounds."""
+    return sorted(lik.items(), key=lambda kv: (kv[0] != "window", bool(kv[1].get("bound")), kv[0]))
+
+
+def likelihood_rows(models: dict, order: list[str]) -> list[list[str]]:
+    """One row per (model, scope): scope, frames, bound, test/train NLL in both units, gap."""
+    rows = []
+    for name in order:
+        entry = models.get(name, {})
+        if "error" in entry and not entry.get("likelihood"):
+            rows.append(
+                [f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80]] + [""] * 7
+            )
+            continue
+        for scope, lik in _ordered(entry.get("likelihood", {})):
+            label = f"{scope} (bound)" if lik.get("bound") else scope
+            rows.append([
+                f"**{name}**",
+                label,
+                lik.get("frames_label", str(lik.get("frames", "?"))),
+                _ci(lik.get("test"), NATS),
+                _ci(lik.get("train"), NATS),
+                _gap(lik.get("test"), lik.get("train"), NATS),
+                _ci(lik.get("test"), BITS),
+                _ci(lik.get("train"), BITS),
+                str(lik.get("test", {}).get("windows", "?")),
+            ])  # fmt: skip
+    return rows
+
+
+LIKELIHOOD_HEADER = [
+    "model",
+    "scope",
+    "scored frames",
+    "test NLL, nats/frame (m) [95% CI]",
+    "train NLL, nats/frame (m) [95% CI]",
+    "gap test-train, nats/frame (m)",
+    "test NLL, bits/frame (std) [95% CI]",
+    "train NLL, bits/frame (std) [95% CI]",
+    "test windows",
+]
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] * len(header)) + "|"]
+    for row in rows:
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def motion_table(results: dict, order: list[str]) -> str:
+    """Rows: ground truth, then each model; columns: the motion metrics with their units."""
+    meta = results.get("motion_metrics", {})
+    keys = list(meta)
+    header = ["model"] + [f"{meta[k]['label']} ({meta[k]['unit']})" for k in keys]
+    rows = []
+    gt = results.get("ground_truth", {}).get("motion", {})
+    rows.append(["*ground truth (test)*"] + [_fmt(gt.get(k), 3) for k in keys])
+    for name in order:
+        entry = results["models"].get(name, {})
+        motion = entry.get("motion")
+        if not motion:
+            why = entry.get("motion_error") or entry.get("error") or "not run"
+            pad = [""] * max(len(keys) - 1, 0)
+            rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
+            continue
+        rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
+    return _table(header, rows)
+
+
+def speed_table(results: dict, order: list[str]) -> str:
+    header = [
+        "model",
+        "parameters",
+        "train steps",
+        "train frames/s",
+        "sample frames/s, batch 1",
+        "sample frames/s, batch 64",
+        "sampler compile s (b1 / b64)",
+        "run",
+    ]
+    rows = []
+    for name in order:
+        entry = results["models"].get(name, {})
+        sp = entry.get("speed", {})
+        run = entry.get("run_dir", "")
+        reused = " (reused)" if entry.get("reused") else ""
+        rows.append([
+            f"**{name}**",
+            _fmt(entry.get("params"), 0),
+            _fmt(entry.get("steps"), 0),
+            (_fmt(sp.get("train_frames_per_s"), 0) if sp.get("train_frames_per_s")
+             else f"closed-form fit, {_fmt(sp.get('fit_seconds'), 1)} s"
+             if sp.get("fit_seconds") is not None else "n/a"),
+            _fmt(sp.get("sample_frames_per_s_b1"), 0),
+            _fmt(sp.get("sample_frames_per_s_b64"), 0),
+            f"{_fmt(sp.get('compile_s_b1'), 1)} / {_fmt(sp.get('compile_s_b64'), 1)}",
+            f"`{run}`{reused}",
+        ])  # fmt: skip
+    return _table(header, rows)
+
+
+def performer_table(split: dict, order: list[str]) -> str:
+    header = [
+        "model",
+        "scope",
+        "test NLL (unseen performers), nats/frame (m) [95% CI]",
+        "train NLL, nats/frame (m) [95% CI]",
+        "gap, nats/frame (m)",
+        "test NLL, bits/frame (std) [95% CI]",
+    ]
+    rows = []
+    for name in order:
+        entry = split.get("models", {}).get(name)
+        if entry is None:
+            continue
+        if "error" in entry and not entry.get("likelihood"):
+            rows.append(
+                [f"**{name}**", "failed: " + entry["error"].splitlines()[0][:80], "", "", "", ""]
+            )
+            continue
+        for scope, lik in _ordered(entry.get("likelihood", {})):
+            label = f"{scope} (bound)" if lik.get("bound") else scope
+            rows.append([
+                f"**{name}**", label,
+                _ci(lik.get("test"), NATS), _ci(lik.get("train"), NATS),
+                _gap(lik.get("test"), lik.get("train"), NATS), _ci(lik.get("test"), BITS),
+            ])  # fmt: skip
+    return _table(header, rows)
+
+
+def _split3(d: Any) -> str:
+    if not isinstance(d, dict):
+        return "?"
+    return " / ".join(str(d.get(k, "?")) for k in ("train", "val", "test"))
+
+
+def write_markdown(results: dict, path: str | Path) -> str:
+    """Write ``BENCHMARK.md`` for ``results``; returns the text."""
+    order = list(results.get("model_order", list(results["models"])))
+    sections = (
+        _header(results),
+        _data_section(results),
+        _likelihood_section(results, order),
+        _motion_section(results, order),
+        _speed_section(results, order),
+        _plots_section(results),
+        _failures_section(results),
+    )
+    text = "\n".join(line for section in sections for line in section)
+    Path(path).write_text(text)
+    return text
+
+
+def _header(results: dict) -> list[str]:
+    m = results["machine"]
+    return [
+        f"# motionflows benchmark: {results['data']['spec']} data, {results['budget']} budget\n",
+        f"Command: `{results['command']}`  ",
+        f"Created {results['created']} in {_fmt(results.get('wall_seconds'), 0)} s "
+        f"of wall time; budget `{results['budget']}` = {results['budget_note']}.  ",
+        f"Machine: {m['cpu']} ({m['cores']} cores visible"
+        f"{'; ' + ', '.join(m['isa']) if m.get('isa') else ''}), {m['memory']}, "
+        f"{m['platform']}; JAX {m['jax']} ({m['backend']}: {m['devices']}), "
+        f"Flax {m['flax']}, Python {m['python']}; {m.get('load', 'load unknown')} at "
+        "the start (timings on a shared machine are slower than on an idle one).\n",
+    ]
+
+
+def _data_section(results: dict) -> list[str]:
+    data = results["data"]
+    cfg, info = data["config"], data.get("info", {})
+    out = [
+        "## Data\n",
+        f"Source `{cfg['source']}`"
+        + (f" at `{cfg['path']}`" if cfg.get("path") else "")
+        + f", {cfg['fps']:g} fps, windows of {cfg['window']} frames "
+        f"({cfg['window'] / cfg['fps']:g} s), hop {cfg['hop']}, split by {cfg['split_by']}. "
+        f"Takes train / val / test: {_split3(info.get('takes'))}; windows "
+        f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
+        f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
+        "trained on this one data configuration and scored on the same test windows "
+        "and controls; windows padded past the end of a short take are not scored.\n",
+    ]
+    test = results.get("test_data") or {}
+    if test.get("spec"):
+        skipped = test.get("skipped") or []
+        out.append(
+            f"**Test data: `{test['spec']}`** instead of the test split: every table below is "
+            f"computed on the {test.get('windows', '?')} complete windows of its "
+            f"{len(test.get('takes') or [])} takes (cut at the same fps, window and hop, "
+            "standardised with the training standardiser)"
+            + (f"; {len(skipped)} take(s) shorter than one window skipped" if skipped else "")
+            + ".\n"
+        )
+    return out
+
+
+def scope_notes(results: dict, order: list[str]) -> list[str]:
+    """One line per (scope, description) across the models: which models score it, and
+    what it is (the experiments' own ``SCOPES`` descriptions)."""
+    seen: dict[tuple[str, str, bool], list[str]] = {}
+    for name in order:
+        for scope, lik in _ordered(results["models"].get(name, {}).get("likelihood", {})):
+            key = (scope, lik.get("description", ""), bool(lik.get("bound")))
+            seen.setdefault(key, []).append(name)
+    return [
+        f"- `{scope}`{' (bound)' if bound else ''}, {', '.join(names)}: {text or 'no description'}"
+        for (scope, text, bound), names in seen.items()
+    ]
+
+
+def _likelihood_section(results: dict, order: list[str]) -> list[str]:
+    out = [
+        "## Likelihood\n",
+        "Negative log-likelihood per frame (lower is better), mean over windows with a "
+        f"bootstrap 95% interval ({results['bootstrap']} resamples of windows). "
+        "`nats/frame (m)`: the density of the 63 pose values in metres (the standardiser's "
+        "log-Jacobian included); `bits/frame (std)`: the same scored frames in the "
+        "standardised space of the official MoGlow code. `window` = -log p(x_1:T | c_1:T) / T "
+        "over all T frames of the window given its controls. `(bound)` rows are bounds on "
+        "the likelihood (an upper bound on the NLL, not the NLL). The train column scores "
+        f"{results['train_windows_note']}. The scopes, as each experiment defines them:\n",
+        *scope_notes(results, order),
+        "",
+        _table(LIKELIHOOD_HEADER, likelihood_rows(results["models"], order)) + "\n",
+    ]
+    split = results.get("performer_split")
+    if split:
+        out.append("### Split by performer\n")
+        if split.get("skipped"):
+            out.append(f"Not run: {split['skipped']}\n")
+        else:
+            out.append(
+                f"Train on performers {split.get('train', '?')}, test on "
+                f"{split.get('test', '?')} (each model retrained on this split).\n"
+            )
+            out.append(performer_table(split, order) + "\n")
+    return out
+
+
+def _motion_section(results: dict, order: list[str]) -> list[str]:
+    return [
+        "## Motion quality of samples\n",
+        f"Samples drawn for the controls of {results['motion_windows']} test windows at "
+        f"temperature {results['temperature']:g} (every model), converted to metres; diversity "
+        f"from {results.get('diversity_samples', 'several')} samples under one control; the "
+        "first row scores the ground-truth test motion the same way. "
+        + results.get("motion_note", "")
+        + "\n",
+        motion_table(results, order) + "\n",
+    ]
+
+
+def _speed_section(results: dict, order: list[str]) -> list[str]:
+    return [
+        "## Speed\n",
+        "Training frames/s: median of the run's logged frames/s (frames of pose data per "
+        "second of training, data loading included). Sampling frames/s: generated frames per "
+        f"second of wall time for {results['window']} frames per sequence at batch 1 and 64 "
+        "(jitted sampler, compile excluded and listed separately).\n",
+        speed_table(results, order) + "\n",
+    ]
+
+
+def _plots_section(results: dict) -> list[str]:
+    plots = results.get("plots", {})
+    if not plots:
+        return []
+    out = ["## Plots\n"]
+    if plots.get("per_frame_nll"):
+        out.append(f"![NLL per frame position]({plots['per_frame_nll']})\n")
+        notes = [f"{k}: {v}" for k, v in results.get("per_frame_notes", {}).items()]
+        if notes:
+            out.append("Per-frame NLL: " + "; ".join(notes) + ".\n")
+    if plots.get("metrics"):
+        out.append(f"![motion metrics]({plots['metrics']})\n")
+    for name, gif in plots.get("gifs", {}).items():
+        out.append(f"- `{name}` beside the ground truth (same test control): [{gif}]({gif})")
+    return out + [""]
+
+
+def _failures_section(results: dict) -> list[str]:
+    errors = {k: v["error"] for k, v in results["models"].items() if v.get("error")}
+    if not errors:
+        return []
+    return ["## Failures\n", *(f"- **{n}**: {e.splitlines()[0]}" for n, e in errors.items()), ""]

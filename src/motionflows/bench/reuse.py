@@ -1,0 +1,134 @@
+"""The bench's runs: reuse a finished run whose saved config equals the one it would train,
+else train it (through :func:`motionflows.training.train`) under ``runs/<experiment>/``."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+from motionflows.config import DataConfig, read_config_json, to_dict
+from motionflows.errors import RunError
+from motionflows.runs import MetricsWarning, read_metrics
+
+
+def log(progress, msg: str) -> None:
+    """One time-stamped progress line through ``progress`` (None: silent)."""
+    if progress:
+        progress(f"[bench {time.strftime('%H:%M:%S')}] {msg}")
+
+
+def _rows(run_dir: Path) -> list[dict]:
+    """``metrics.jsonl`` rows; damaged lines are skipped silently here (``motionflows
+    runs`` reports them)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MetricsWarning)
+        return read_metrics(run_dir)
+
+
+def run_finished(run_dir: Path, steps: int) -> bool:
+    """Whether ``run_dir`` completed: its last ``status`` row is ``finished`` at step >=
+    ``steps``, or ``fitted`` (closed-form baselines)."""
+    status = [r for r in _rows(run_dir) if "status" in r]
+    if not status:
+        return False
+    last = status[-1]
+    if last["status"] == "fitted":
+        return True
+    return last["status"] == "finished" and int(last.get("step") or 0) >= steps
+
+
+def find_run(runs_dir: str | Path, experiment: str, config: Any) -> Path | None:
+    """The newest finished run under ``runs_dir/<experiment>/`` whose saved config equals
+    ``config`` (same data, model and training settings), else None."""
+    base = Path(runs_dir) / experiment
+    if not base.is_dir():
+        return None
+    want, steps = to_dict(config), int(config.train.steps)
+    hits = []
+    for path in base.glob("*/config.json"):
+        try:
+            saved = read_config_json(path)
+        except RunError:
+            continue
+        if saved.get("experiment", experiment) != experiment or saved.get("config") != want:
+            continue
+        if run_finished(path.parent, steps):
+            hits.append(path.parent)
+    return max(hits, key=lambda p: p.stat().st_mtime) if hits else None
+
+
+def data_tag(data: DataConfig) -> str:
+    """Short name of a data config in bench run names (``synthetic``, ``bvh-DIR``, ...)."""
+    tag = data.source if data.source != "bvh" else "bvh-" + Path(str(data.path)).name
+    return tag if data.split_by == "take" else f"{tag}-{data.split_by}"
+
+
+def obtain_run(
+    model_name: str,
+    exp,
+    config,
+    provenance: dict,
+    *,
+    runs_dir: Path,
+    budget: str,
+    data_tag: str,
+    retrain: bool,
+    progress,
+    dataset=None,
+) -> tuple[Path, bool, float]:
+    """(run_dir, reused, training seconds): reuse a finished identical run or train one."""
+    experiment = provenance["experiment"]
+    if not retrain:
+        found = find_run(runs_dir, experiment, config)
+        if found is not None:
+            log(progress, f"{model_name}: reusing finished run {found}")
+            return found, True, 0.0
+    name = f"bench-{model_name}-{budget}-{data_tag}-{time.strftime('%Y%m%d-%H%M%S')}"
+    run_dir = Path(runs_dir) / experiment / name
+    log(
+        progress,
+        f"{model_name}: training {provenance['preset']} preset "
+        f"({config.train.steps} steps) -> {run_dir}",
+    )
+    t0 = time.perf_counter()
+    train_run(exp, config, run_dir, preset=provenance["preset"], progress=progress, dataset=dataset)
+    return run_dir, False, time.perf_counter() - t0
+
+
+def train_run(exp, config, run_dir: Path, *, preset: str, progress, dataset=None) -> None:
+    """Train through ``motionflows.training.train``; RunError unless it finished."""
+    from motionflows import training
+
+    result = training.train(
+        exp, config, run_dir=run_dir, preset=preset, progress=bool(progress), dataset=dataset
+    )
+    if result.status not in ("finished", "fitted"):
+        raise RunError(
+            f"training {run_dir} ended with status {result.status!r}; see its metrics.jsonl"
+        )
+
+
+def fit_seconds(run_dir: Path) -> float | None:
+    """Seconds of a closed-form fit (``fit_seconds`` in ``metrics.jsonl``), else None."""
+    values = [r["fit_seconds"] for r in _rows(run_dir) if _number(r.get("fit_seconds"))]
+    return float(values[0]) if values else None
+
+
+def train_speed(run_dir: Path) -> float | None:
+    """Median training frames/s logged in ``metrics.jsonl`` (the first logged record is
+    dropped when there are more than two: it includes compilation)."""
+    import numpy as np
+
+    values = [float(r["frames_per_s"]) for r in _rows(run_dir) if _number(r.get("frames_per_s"))]
+    values = [v for v in values if v > 0]
+    if len(values) > 2:
+        values = values[1:]
+    return float(np.median(values)) if values else None
+
+
+def _number(x: Any) -> bool:
+    import math
+
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)

@@ -1,0 +1,132 @@
+"""The optimiser and the one jitted training step of motionflows.
+
+``make_optimizer(train)`` is an optax chain::
+
+    [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw(schedule)
+
+with the learning-rate schedule of :func:`learning_rate_schedule` (warm-up, then constant,
+cosine or MoGlow's "noam" rule). :func:`make_train_step` is the pure step
+
+    (loss, metrics), grads = value_and_grad(module.loss)(params)   # nnx.Param leaves only
+
+whose update is skipped (params and optimiser state kept, inside the jitted step, no host
+sync) when the loss, the gradient norm or the update is NaN/inf; the guard counters of
+:func:`init_guard` count such steps.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import nnx
+
+from motionflows import config as cfg
+
+
+def noam_schedule(lr: float, warmup: int, minimum: float) -> optax.Schedule:
+    """The "noam" rule of the official MoGlow / glow-pytorch code, g the step from 0::
+
+        lr(g) = lr * sqrt(W) * min((g + 1) * W^-1.5, (g + 1)^-0.5),  floored at ``minimum``
+                once g > W
+
+    a linear warm-up to ``lr`` at g = W - 1, then decay as sqrt(W / (g + 1)). With
+    ``minimum == lr`` it is a warm-up followed by a constant ``lr``."""
+    w = float(max(1, warmup))
+
+    def schedule(step):
+        g = jnp.asarray(step, jnp.float32) + 1.0
+        value = lr * jnp.sqrt(w) * jnp.minimum(g * w**-1.5, g**-0.5)
+        return jnp.where(g - 1.0 > w, jnp.maximum(value, minimum), value)
+
+    return schedule
+
+
+def learning_rate_schedule(train: cfg.TrainConfig) -> optax.Schedule:
+    """Linear warm-up from 0 over ``warmup_steps``, then constant or cosine decay to
+    ``lr * min_lr_ratio`` at ``steps``; or ``"noam"`` (:func:`noam_schedule`, its own
+    warm-up over ``warmup_steps``, floor ``lr * min_lr_ratio``)."""
+    if train.schedule not in cfg.SCHEDULES:
+        raise ValueError(
+            f"train.schedule must be one of {', '.join(cfg.SCHEDULES)}, got {train.schedule!r}"
+        )
+    if train.schedule == "noam":
+        return noam_schedule(train.lr, train.warmup_steps, train.lr * train.min_lr_ratio)
+    if train.schedule == "constant":
+        after = optax.constant_schedule(train.lr)
+    else:
+        decay = max(1, train.steps - train.warmup_steps)
+        after = optax.cosine_decay_schedule(train.lr, decay, alpha=train.min_lr_ratio)
+    if train.warmup_steps <= 0:
+        return after
+    warm = optax.linear_schedule(0.0, train.lr, train.warmup_steps)
+    return optax.join_schedules([warm, after], [train.warmup_steps])
+
+
+def gradient_clipping(train: cfg.TrainConfig) -> optax.GradientTransformation:
+    """[clip(clip_value)] -> [clip_by_global_norm(clip_norm)] (identity when both are None)."""
+    parts = []
+    if train.clip_value is not None:
+        parts.append(optax.clip(train.clip_value))
+    if train.clip_norm is not None:
+        parts.append(optax.clip_by_global_norm(train.clip_norm))
+    return optax.chain(*parts) if parts else optax.identity()
+
+
+def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
+    """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw."""
+    parts = [gradient_clipping(train)]
+    lr = learning_rate_schedule(train)
+    if train.optimizer == "adam":
+        parts.append(optax.adam(lr, b1=train.b1, b2=train.b2, eps=train.eps))
+    elif train.optimizer == "adamw":
+        parts.append(
+            optax.adamw(
+                lr, b1=train.b1, b2=train.b2, eps=train.eps, weight_decay=train.weight_decay
+            )
+        )
+    else:
+        raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {train.optimizer!r}")
+    return optax.chain(*parts)
+
+
+def init_guard() -> dict[str, jax.Array]:
+    """Non-finite guard counters: current run of bad steps, its maximum, total skipped."""
+    z = jnp.zeros((), jnp.int32)
+    return {"consecutive": z, "peak": z, "skipped": z}
+
+
+def make_train_step(module: Any, graphdef: Any, optimizer: optax.GradientTransformation):
+    """The jitted step ``(params, rest, opt_state, guard, batch, key) -> (params, opt_state,
+    guard, out)``; ``params`` and ``opt_state`` are donated. ``out`` holds ``loss``,
+    ``grad_norm``, ``finite`` and the module's metrics. A non-finite loss, gradient norm or
+    update leaves params and optimiser state unchanged (``jnp.where``: no host sync)."""
+
+    def step(params, rest, opt_state, guard, batch, key):
+        def objective(p):
+            model = nnx.merge(graphdef, p, rest)
+            return module.loss(model, batch, key)
+
+        (loss, metrics), grads = jax.value_and_grad(objective, has_aux=True)(params)
+        grad_norm = optax.tree.norm(grads)
+        updates, new_opt = optimizer.update(grads, opt_state, params)
+        new_params = optax.apply_updates(params, updates)
+        finite = (
+            jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(updates))
+        )
+
+        def keep(new, old):
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)
+
+        consecutive = jnp.where(finite, 0, guard["consecutive"] + 1).astype(jnp.int32)
+        guard = {
+            "consecutive": consecutive,
+            "peak": jnp.maximum(guard["peak"], consecutive),
+            "skipped": guard["skipped"] + (~finite).astype(jnp.int32),
+        }
+        out = {"loss": loss, "grad_norm": grad_norm, "finite": finite, **dict(metrics)}
+        return keep(new_params, params), keep(new_opt, opt_state), guard, out
+
+    return jax.jit(step, donate_argnums=(0, 2))
