@@ -21,6 +21,7 @@ declare -A SETS=(
   [res-hidden256]="residual=true hidden=256"
   [res-studentt]="residual=true base=studentt"
   [res-bf16]="residual=true compute_dtype=bfloat16"
+  [res-keeplast]="residual=true dropout_keeps_last=true"
 )
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=(all residual res-dropout0 res-K8 res-hidden256 res-dropout0.95 res-ff res-tau5 res-studentt res-bf16 dropout0 res-tau20)

@@ -50,6 +50,7 @@ class Config:
     base: str = "normal"  # "normal" | "studentt"
     df: float = 5.0  # Student-t degrees of freedom (base = "studentt")
     residual: bool = False  # flow x_t - x_{t-1} (our option; see MoGlow's docstring)
+    dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (our option)
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -203,6 +204,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         dropout=config.dropout,
         compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
         residual=config.residual,
+        dropout_keeps_last=config.dropout_keeps_last,
         rngs=key,
     )
 

@@ -136,6 +136,28 @@ def test_history_dropout_rate_and_pattern():
         build_conditions(pose, control, TAU, dropout=0.5)
 
 
+def test_dropout_keeps_last_never_drops_the_previous_frame():
+    b, t, rate = 200, 13, 0.9
+    pose = jnp.ones((b, t, D)) + jnp.arange(D)
+    control = jnp.ones((b, t, C))
+    key = jax.random.key(0)
+    _, cond = build_conditions(pose, control, TAU, dropout=rate, key=key, keep_last=True)
+    hist = np.asarray(cond[..., : TAU * D]).reshape(b, t - TAU, TAU, D)
+    dropped = np.all(hist == 0, axis=-1)
+    assert not dropped[..., -1].any()  # x_{t-1} always there
+    assert abs(dropped[..., :-1].mean() - rate) < 0.02  # the older frames at the rate
+    # the model passes its option to the training-time conditions: with x_{t-1} kept, the
+    # dropout NLL of a residual model changes (the conditioner sees the frame it adds to)
+    data = _data()
+    kw = dict(residual=True, dropout=0.9)
+    base = _model(**kw).log_prob(*data, key=key)
+    kept = _model(**kw, dropout_keeps_last=True).log_prob(*data, key=key)
+    assert not np.allclose(base, kept)
+    np.testing.assert_allclose(  # clean scoring is unaffected
+        _model(**kw).log_prob(*data), _model(**kw, dropout_keeps_last=True).log_prob(*data)
+    )
+
+
 def test_log_prob_dropout_uses_key():
     model = _model(dropout=0.5)
     pose, control = _data()
