@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -235,10 +236,51 @@ def features_from_positions(
     )
 
 
+def array_module(a: Any):
+    """numpy for numpy input, jax.numpy for jax arrays (so integrate_root works in both)."""
+    if type(a).__module__.startswith("jax") or hasattr(a, "aval"):
+        import jax.numpy as jnp
+
+        return jnp
+    return np
+
+
+def integrate_root(control: Any) -> tuple[Any, Any]:
+    """Chain per-frame root displacements into a world trajectory.
+
+    control (..., T, 3) -> positions (..., T, 3) (y = 0) and yaw (..., T), with
+    ``p_0 = 0``, ``yaw_0 = 0`` and, for t < T - 1::
+
+        yaw_{t+1} = yaw_t + turn_t
+        p_{t+1}   = p_t + R_y(yaw_t) (sideways_t, 0, forward_t)
+
+    where ``R_y(a)`` rotates counter-clockwise seen from above (+y): local +z (facing) ->
+    (sin a, 0, cos a), local +x (left) -> (cos a, 0, -sin a). The last frame's control
+    (moving T-1 -> T) is not used.
+    """
+    shape = tuple(np.shape(control))
+    if len(shape) < 2 or shape[-1] != 3:
+        raise ValueError(
+            f"control must have shape (..., T, 3) = (forward, sideways, turn), got {shape}"
+        )
+    xp = array_module(control)
+    fwd, side, turn = control[..., 0], control[..., 1], control[..., 2]
+    zero = xp.zeros_like(turn[..., :1])
+    yaw = xp.concatenate([zero, xp.cumsum(turn[..., :-1], axis=-1)], axis=-1)
+    cos, sin = xp.cos(yaw), xp.sin(yaw)
+    dx = side * cos + fwd * sin
+    dz = -side * sin + fwd * cos
+    x = xp.concatenate([zero, xp.cumsum(dx[..., :-1], axis=-1)], axis=-1)
+    z = xp.concatenate([zero, xp.cumsum(dz[..., :-1], axis=-1)], axis=-1)
+    return xp.stack([x, xp.zeros_like(x), z], axis=-1), yaw
+
+
 def integrate_control(
     control: np.ndarray, *, yaw0: float = 0.0, start: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Root trajectory from a control sequence (inverse of step 6).
+    """Root trajectory from a control sequence (inverse of step 6), one frame longer than
+    the control: :func:`integrate_root` of ``control`` with one more (unused) frame,
+    turned by ``yaw0`` and moved to ``start``.
 
     Args:
       control: (T, 3) (forward, sideways, turn) per frame.
@@ -247,14 +289,11 @@ def integrate_control(
       (default origin) and ``yaw0``.
     """
     control = np.asarray(control, dtype=np.float64)
-    n = control.shape[0]
-    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(control[:, 2])])
-    step = np.stack([control[:, 1], np.zeros(n), control[:, 0]], axis=-1)
-    world_step = rotate_y(step, yaw[:-1])
-    pos = np.concatenate([np.zeros((1, 3)), np.cumsum(world_step, axis=0)], axis=0)
+    pos, yaw = integrate_root(np.concatenate([control, np.zeros((1, 3))], axis=0))
+    pos = rotate_y(pos, np.float64(yaw0))
     if start is not None:
         pos = pos + np.asarray(start, dtype=np.float64)
-    return pos, yaw
+    return pos, yaw + yaw0
 
 
 def world_from_features(pose: np.ndarray, control: np.ndarray) -> np.ndarray:

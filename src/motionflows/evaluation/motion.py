@@ -19,19 +19,14 @@ from typing import Any
 
 import numpy as np
 
+from motionflows.data.features import array_module, integrate_root
 from motionflows.data.names import FOOT_JOINTS, NUM_JOINTS, PARENTS, POSE_DIM
 
 PAPER_FRAMES_60FPS: tuple[int, ...] = (70, 90, 120, 160, 210)
 """Frames (0-based index in a 60-fps window) at which Habibie et al. report errors."""
 
 
-def _xp(a: Any):
-    """numpy for numpy input, jax.numpy for jax arrays (so the helpers work in both)."""
-    if type(a).__module__.startswith("jax") or hasattr(a, "aval"):
-        import jax.numpy as jnp
-
-        return jnp
-    return np
+_xp = array_module  # numpy in, numpy out; jax in, jax out
 
 
 def _check_pose(pose: Any, name: str = "pose") -> None:
@@ -46,32 +41,6 @@ def _check_control(control: Any, name: str = "control") -> None:
         raise ValueError(
             f"{name} must have shape (..., T, 3) = (forward, sideways, turn), got {shape}"
         )
-
-
-def integrate_root(control: Any) -> tuple[Any, Any]:
-    """Chain per-frame root displacements into a world trajectory.
-
-    control (..., T, 3) -> positions (..., T, 3) (y = 0) and yaw (..., T), with
-    ``p_0 = 0``, ``yaw_0 = 0`` and, for t < T - 1::
-
-        yaw_{t+1} = yaw_t + turn_t
-        p_{t+1}   = p_t + R_y(yaw_t) (sideways_t, 0, forward_t)
-
-    where ``R_y(a)`` rotates counter-clockwise seen from above (+y): local +z (facing) ->
-    (sin a, 0, cos a), local +x (left) -> (cos a, 0, -sin a). The last frame's control
-    (moving T-1 -> T) is not used.
-    """
-    _check_control(control)
-    xp = _xp(control)
-    fwd, side, turn = control[..., 0], control[..., 1], control[..., 2]
-    zero = xp.zeros_like(turn[..., :1])
-    yaw = xp.concatenate([zero, xp.cumsum(turn[..., :-1], axis=-1)], axis=-1)
-    cos, sin = xp.cos(yaw), xp.sin(yaw)
-    dx = side * cos + fwd * sin
-    dz = -side * sin + fwd * cos
-    x = xp.concatenate([zero, xp.cumsum(dx[..., :-1], axis=-1)], axis=-1)
-    z = xp.concatenate([zero, xp.cumsum(dz[..., :-1], axis=-1)], axis=-1)
-    return xp.stack([x, xp.zeros_like(x), z], axis=-1), yaw
 
 
 def to_global(pose: Any, control: Any) -> Any:
