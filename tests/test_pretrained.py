@@ -101,3 +101,16 @@ def test_pretrained_names_and_cli(exported, monkeypatch, tmp_path, capsys):
     assert code == 2 and "no pretrained model 'nope'" in capsys.readouterr().err
     code = cli.main(["export", "pretrained:moglow-tiny", "--out", str(tmp_path / "copy")])
     assert code == 0 and (tmp_path / "copy" / "config.json").is_file()
+
+
+def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, capsys):
+    run_dir, out = exported  # two run directories of the same tiny model
+    args = ["--control", "walk", "--seconds", "1", "--temperature", "0.7", "--out", str(tmp_path),
+            "--no-gif"]  # fmt: skip
+    assert cli.main(["sample", str(run_dir), *args]) == 0, capsys.readouterr().err
+    assert cli.main(["sample", str(out), *args]) == 0, capsys.readouterr().err
+    files = sorted(tmp_path.glob("*.npz"))
+    assert len(files) == 2  # the second run did not overwrite the first one's sample
+    assert {str(np.load(f)["run_dir"]) for f in files} == {str(run_dir), str(out)}
+    assert cli.main(["sample", str(out), *args]) == 0  # the same run again: replaced in place
+    assert len(list(tmp_path.glob("*.npz"))) == 2

@@ -21,6 +21,7 @@ import json
 import os
 import sys
 import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,20 @@ def _sample_controls(args, fps: float) -> list[tuple[str, np.ndarray, np.ndarray
     return [(path.stem, load_control(text, seconds, fps), None)]
 
 
+def _sample_stem(out: Path, stem: str, run_dir: Path) -> str:
+    """``stem``, unless ``out`` already holds that sample from another run (a shared
+    ``--out`` for several models): then ``<run name>_<stem>``, so nothing saved is lost."""
+    existing = out / f"{stem}.npz"
+    if not existing.is_file():
+        return stem
+    try:
+        with np.load(existing) as old:
+            same = str(old["run_dir"]) == str(run_dir)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: keep it too
+        same = False
+    return stem if same else f"{run_dir.name}_{stem}"
+
+
 def cmd_sample(args) -> int:
     from motionflows import run, runs
     from motionflows.pretrained.model import INFO_FILE
@@ -160,7 +175,7 @@ def cmd_sample(args) -> int:
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )
-        stem = f"{name}_T{temperature:g}_seed{args.seed}"
+        stem = _sample_stem(out, f"{name}_T{temperature:g}_seed{args.seed}", run_dir)
         npz = out / f"{stem}.npz"
         extra = {} if truth is None else {"ground_truth": truth}
         np.savez(

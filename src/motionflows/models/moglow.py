@@ -441,7 +441,12 @@ class MoGlow(nnx.Module):
                 "scope='window'"
             )
         targets, cond = build_conditions(
-            pose, context, self.tau, scope=scope, dropout=dropout, key=key,
+            pose,
+            context,
+            self.tau,
+            scope=scope,
+            dropout=dropout,
+            key=key,
             keep_last=self.dropout_keeps_last,
         )
         if self.residual:  # the changes x_t - x_{t-1} of the target frames (log-det 0)

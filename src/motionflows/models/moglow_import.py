@@ -23,7 +23,6 @@ if TYPE_CHECKING:
 __all__ = ["import_stylegestures", "load_stylegestures_checkpoint"]
 
 
-
 def _np(state_dict: dict, name: str) -> np.ndarray:
     if name not in state_dict:
         raise ValueError(f"import_stylegestures: the state dict has no entry {name!r}")
