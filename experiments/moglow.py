@@ -50,7 +50,7 @@ class Config:
     base: str = "normal"  # "normal" | "studentt"
     df: float = 5.0  # Student-t degrees of freedom (base = "studentt")
     residual: bool = False  # flow x_t - x_{t-1} (our option; see MoGlow's docstring)
-    dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (our option)
+    dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (an ablation)
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:

@@ -321,10 +321,9 @@ class MoGlow(nnx.Module):
         initialisation then sees the per-frame change, whose scale is the predictable part
         a plain MoGlow needs many steps to learn (see docs/readme/moglow_quality.md).
       dropout_keeps_last: history dropout never drops x_{t-1}, only the older tau - 1
-        frames. With ``residual`` and a dropped x_{t-1} the conditioner cannot see the
-        absolute pose the change is added to, so sampling integrates its errors unseen and
-        the skeleton drifts (bone lengths 24 cm off after 10 s of the dropout-0.7 `cpu`
-        model); keeping x_{t-1} lets it correct them (docs/readme/moglow_quality.md).
+        frames (our option, an ablation of the long-run drift of ``residual`` models: at
+        the `cpu` size it improves the NLL by ~20 nats/frame but worsens rollouts; see
+        docs/readme/moglow_quality.md#long-runs-drift).
       rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
     """
 
