@@ -14,7 +14,7 @@ import sys
 import jax
 import jax.numpy as jnp
 
-from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig
 from motionflows.models.baselines import (
     DiagonalGaussian,
     LinearGaussianAR,
@@ -47,7 +47,7 @@ PRESETS: dict[str, Config] = {
     "linear_ar_diag": Config(covariance="diag"),
     # Seconds: tests and the bench's smoke budget (a small synthetic set, 1.6 s windows).
     "smoke": Config(
-        data=DataConfig(window=32, hop=8, synthetic_clips=16, synthetic_seconds=6.0),
+        data=DataConfig(**SMOKE_DATA),
         fit_windows=1024,
     ),
 }

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.bijectors import initialize_from_data
-from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.glow import PRIORS, Glow
 from motionflows.models.validation import check_sample_args
@@ -139,15 +139,12 @@ PRESETS["cpu"] = Config(
 # Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
 PRESETS["smoke"] = dataclasses.replace(
     PRESETS["quick"],
-    data=DataConfig(window=32, hop=8, synthetic_clips=16, synthetic_seconds=6.0),
-    train=dataclasses.replace(
-        PRESETS["quick"].train, steps=30, batch_size=8, eval_every=30, eval_batches=1,
-        log_every=5, checkpoint_every=30, keep_checkpoints=1,
-    ),
+    data=DataConfig(**SMOKE_DATA),
+    train=smoke_train(PRESETS["quick"].train),
     levels=2,
     K=2,
     hidden=16,
-)  # fmt: skip
+)
 PRESETS["paper_unconditional"] = dataclasses.replace(PRESETS["paper"], conditional=False)
 PRESETS["quick_unconditional"] = dataclasses.replace(PRESETS["quick"], conditional=False)
 

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from motionflows.bijectors import initialize_from_data
-from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.moglow import MoGlow
 from motionflows.models.validation import check_sample_args
@@ -155,15 +155,12 @@ PRESETS["cpu"] = dataclasses.replace(
 # Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
 PRESETS["smoke"] = dataclasses.replace(
     PRESETS["quick"],
-    data=DataConfig(window=32, hop=8, synthetic_clips=16, synthetic_seconds=6.0),
-    train=dataclasses.replace(
-        PRESETS["quick"].train, steps=30, batch_size=8, eval_every=30, eval_batches=1,
-        log_every=5, checkpoint_every=30, keep_checkpoints=1,
-    ),
+    data=DataConfig(**SMOKE_DATA),
+    train=smoke_train(PRESETS["quick"].train),
     K=2,
     hidden=16,
     layers=1,
-)  # fmt: skip
+)
 PRESETS["paper_markov"] = dataclasses.replace(PRESETS["paper"], conditioner="ff")
 PRESETS["quick_markov"] = dataclasses.replace(PRESETS["quick"], conditioner="ff")
 

@@ -102,6 +102,20 @@ class TrainConfig:
             raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
 
 
+SMOKE_DATA: dict[str, Any] = dict(synthetic_clips=16, synthetic_seconds=6.0, window=32, hop=8)
+"""Data fields of the experiments' ``smoke`` presets and the bench's smoke budget: a small
+synthetic set and 1.6 s windows."""
+
+
+def smoke_train(train: TrainConfig) -> TrainConfig:
+    """``train`` cut to a ``smoke`` preset's CI-sized run: 30 steps of batch 8, one
+    evaluation (one batch) and one kept checkpoint at the end."""
+    return dataclasses.replace(
+        train, steps=30, batch_size=8, eval_every=30, eval_batches=1, log_every=5,
+        checkpoint_every=30, keep_checkpoints=1,
+    )  # fmt: skip
+
+
 # field -> (lowest, highest, lowest allowed?, highest allowed?); None values are left to the
 # field's "X | None" type. Every number must also be finite.
 _Limit = tuple[float, float, bool, bool]

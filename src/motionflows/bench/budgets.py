@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from motionflows.config import DataConfig
+from motionflows.config import SMOKE_DATA, DataConfig
 from motionflows.errors import RunError
 
 BUDGETS: dict[str, str] = {"smoke": "smoke", "quick": "quick", "cpu": "cpu", "full": "paper"}
@@ -33,8 +33,6 @@ BUDGET_NOTES = {
     "full": "each experiment's `paper` preset (the papers' hyper-parameters)",
 }
 
-SMOKE_DATA = {"synthetic_clips": 16, "synthetic_seconds": 6.0, "window": 32, "hop": 8}
-"""Data-config overrides of the smoke budget (a small synthetic set and short windows)."""
 
 BUDGET_SIZES: dict[str, dict[str, int]] = {
     # windows scored for likelihood (test, and a train subset), windows sampled for motion
