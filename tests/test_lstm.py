@@ -213,3 +213,31 @@ def test_low_precision_matmul_backward_is_low_precision_and_close():
     np.testing.assert_allclose(g16[0], dx, rtol=1e-5, atol=1e-5)
     # float32: exact, dx = r @ w^T
     np.testing.assert_allclose(g32[0], r @ w.T, rtol=1e-5, atol=1e-5)
+
+
+def _dots_in_loops(jaxpr, inside=False):
+    """Output shapes of the dot_generals of a jaxpr, tagged with whether they sit in a loop."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append((inside, tuple(eqn.outvars[0].aval.shape)))
+        loop = eqn.primitive.name in ("scan", "while")
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple | list) else (value,):
+                sub = getattr(sub, "jaxpr", sub)  # ClosedJaxpr -> Jaxpr
+                if hasattr(sub, "eqns"):
+                    found += _dots_in_loops(sub, inside or loop)
+    return found
+
+
+def test_float32_backward_forms_the_recurrent_weight_gradient_outside_the_time_loop():
+    # dW_hh = sum_t h_{t-1}^T dpre_t: one matmul over all frames, not a (H, 4H) product and
+    # accumulation per frame inside the reverse scan (plain autodiff through lax.scan does that)
+    lstm = LSTM(5, 7, 1, rngs=nnx.Rngs(12))
+    x = jax.random.normal(jax.random.key(13), (3, 6, 5))
+    graphdef, params = nnx.split(lstm)
+    loss = lambda p: jnp.sum(nnx.merge(graphdef, p)(x)[0] ** 2)  # noqa: E731
+    dots = _dots_in_loops(jax.make_jaxpr(jax.grad(loss))(params).jaxpr)
+    weight_shaped = [inside for inside, shape in dots if sorted(shape) == [7, 28]]
+    assert weight_shaped == [False]  # dW_hh (or its transpose), once, outside any loop
+    assert any(inside for inside, _ in dots)  # the recurrence itself is still a loop

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -314,3 +316,32 @@ def test_residual_flows_the_change_of_pose():
     change, _ = plain.stream_step(plain.init_stream(2, seed), control[:, 0], jax.random.key(1),
                                   temperature=0.0)  # fmt: skip
     np.testing.assert_allclose(x_t, seed[:, -1] + change, atol=1e-5)
+
+
+@pytest.mark.parametrize("conditioner", ["lstm", "ff"])
+def test_inference_copy_stores_conditioner_weights_in_bfloat16(conditioner):
+    from motionflows.nets.precision import inference_copy
+
+    model = _model(conditioner, layers=2)
+    lp = inference_copy(model, "bfloat16")
+    dtypes = {
+        jax.tree_util.keystr(path): leaf.dtype
+        for path, leaf in jax.tree_util.tree_leaves_with_path(nnx.state(lp, nnx.Param))
+    }
+    low = {path for path, dt in dtypes.items() if dt == jnp.bfloat16}
+    matrix = re.compile(r"\['conditioner'\].*\['(w_ih|w_hh|w_out|ws)'\](\[\d+\])?\.value$")
+    # every conditioner matrix is stored in bfloat16, nothing else (biases, ActNorm, 1x1 maps)
+    assert low and low == {p for p in dtypes if matrix.search(p)}
+    assert len(dtypes) > len(low)
+    assert all(
+        leaf.dtype == jnp.float32 for leaf in jax.tree.leaves(nnx.state(model, nnx.Param))
+    )  # the original is untouched
+    control = jax.random.normal(jax.random.key(7), (2, 12, C))
+    exact = model.sample(jax.random.key(8), control)
+    approx = lp.sample(jax.random.key(8), control)
+    assert approx.dtype == jnp.float32
+    rel = float(jnp.linalg.norm(approx - exact) / jnp.linalg.norm(exact))
+    assert 0 < rel < 0.05  # bfloat16 weights: close, not equal
+    state = lp.init_stream(2)
+    x0, _ = lp.stream_step(state, control[:, 0], jax.random.key(8))
+    np.testing.assert_allclose(x0, approx[:, 0], rtol=1e-5, atol=1e-5)

@@ -101,3 +101,12 @@ def test_floor_entry_takes_the_larger_bound():
         2.0, flops=1.0, peak_flops_per_s=10.0, bytes_read=40.0, bandwidth_bytes_per_s=10.0
     )
     assert memory["bound"] == "memory" and memory["multiple_of_floor"] == 0.5
+
+
+@pytest.mark.parametrize("nbytes", [295_436_224, 1 << 20, 1000])
+def test_memory_bandwidth_takes_any_size(nbytes):
+    # the paper MoGlow's weights (295 MB) are not a multiple of 2048 floats: this crashed
+    read = roofline.memory_bandwidth(nbytes, repeats=1)
+    assert 0 < read["bytes"] <= max(nbytes, 4 * 256)
+    assert read["bytes"] >= min(nbytes, 4 * 256) - 4 * 2048
+    assert read["bytes_per_s"] > 0

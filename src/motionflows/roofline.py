@@ -76,8 +76,9 @@ def memory_bandwidth(nbytes: int = 1 << 28, repeats: int = 5) -> dict:
     (page faults) made it ~5x slower than reading here, which would put the floor above
     times actually measured.
     """
-    x = jnp.ones((nbytes // 4,), jnp.float32)
-    cols = 256 if x.size % 2048 else 2048
+    cols = 2048 if nbytes >= 4 * 2048 * 64 else 256
+    rows = max(1, nbytes // (4 * cols))  # a whole number of rows: any size works
+    x = jnp.ones((rows * cols,), jnp.float32)
     m, v = x.reshape(-1, cols), jnp.ones((cols,), jnp.float32)
     best = {}
     for name, f, args in (("sum", jnp.sum, (x,)), ("matvec", jnp.matmul, (m, v))):

@@ -14,10 +14,15 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from flax import nnx
 
 Array = jax.Array
 
-__all__ = ["matmul", "outer_sum", "product"]
+__all__ = ["MATMUL_WEIGHTS", "inference_copy", "matmul", "outer_sum", "product"]
+
+# The parameters the conditioner modules only ever use through :func:`matmul` (LSTM, MLP
+# and convolution weights); biases, ActNorm and the 1x1 maps are never among them.
+MATMUL_WEIGHTS = frozenset({"w_ih", "w_hh", "w_out", "ws", "kernel"})
 
 
 def product(x: Array, w: Array, cd) -> Array:
@@ -57,3 +62,31 @@ def _matmul_low_bwd(cd, res, g):
 
 
 _matmul_low.defvjp(_matmul_low_fwd, _matmul_low_bwd)
+
+
+def inference_copy(module: nnx.Module, compute_dtype: str = "bfloat16") -> nnx.Module:
+    """A copy of ``module`` for sampling whose conditioner matmul weights are *stored* in
+    ``compute_dtype`` and whose conditioners compute in it (float32 accumulation).
+
+    Every submodule with a ``compute_dtype`` attribute (the LSTM, MLP and convolution
+    conditioners) gets ``compute_dtype`` and its :data:`MATMUL_WEIGHTS` cast once; biases,
+    cell states, the flow's ActNorm / 1x1 maps and the base density stay float32. Batch-1
+    sampling is memory-bound (every weight is read once per frame), so bfloat16 storage
+    halves the bytes a frame reads; with weights kept float32 and only ``compute_dtype``
+    set, each frame would instead re-read and re-cast them. ``module`` itself is unchanged
+    (the float32 path stays exact). For sampling and streaming, not training: the copy's
+    weights are not float32 parameters any more.
+    """
+    name = jnp.dtype(compute_dtype).name
+    copy = nnx.clone(module)
+    for _, node in nnx.iter_graph(copy):
+        if not isinstance(node, nnx.Module) or not hasattr(node, "compute_dtype"):
+            continue
+        node.compute_dtype = name
+        for attr in MATMUL_WEIGHTS & set(vars(node)):
+            value = getattr(node, attr)
+            params = value if isinstance(value, nnx.List) else [value]
+            for param in params:
+                if isinstance(param, nnx.Param):
+                    param.set_value(param[...].astype(name))
+    return copy
