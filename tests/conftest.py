@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import jax
 import pytest
+
+# The suite runs the CLI in-process: keep JAX's persistent compilation cache (which the
+# ``motionflows`` command turns on) out of it, so tests neither read stale entries nor
+# write to the user's cache; tests/test_compile_cache.py checks the cache itself.
+os.environ.setdefault("MOTIONFLOWS_COMPILE_CACHE", "0")
 
 
 def pytest_configure(config):

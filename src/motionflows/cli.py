@@ -504,12 +504,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``motionflows`` console script; returns the exit code."""
     from motionflows.cli_train import report_errors
+    from motionflows.compile_cache import use_persistent_cache
 
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:
         return int(exc.code or 0)
+    use_persistent_cache()
     shown, warnings.showwarning = warnings.showwarning, _one_line_warning
     try:
         return report_errors(args.func, args)
