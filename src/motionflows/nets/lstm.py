@@ -55,22 +55,32 @@ def _gates(pre: Array) -> tuple[Array, Array, Array, Array]:
 
 def _cell(gates: Array, c: Array) -> tuple[Array, Array]:
     """Gate pre-activations (..., 4H) in order i, f, g, o and cell c -> (h', c')."""
-    i, f, g, o = _gates(gates)
+    h, c, _ = _cell_with_gates(gates, c)
+    return h, c
+
+
+def _cell_with_gates(pre: Array, c: Array) -> tuple[Array, Array, Array]:
+    """As :func:`_cell`, also returning the activated gates [i, f, g, o] (..., 4H) that the
+    backward passes read (so they need no sigmoid or tanh of their own but tanh(c))."""
+    i, f, g, o = _gates(pre)
     c = f * c + i * g
     h = o * jnp.tanh(c)
-    return h, c
+    return h, c, jnp.concatenate([i, f, g, o], axis=-1)
 
 
 def _recurrence_forward(gx, w_hh, carry, cd, residuals: bool = False):
     """Outputs hs (T, ..., H) and the final carry; with ``residuals`` also the stacked cell
-    states cs and gate pre-activations pres that the hand-written backward pass needs."""
+    states cs and activated gates acts (T, ..., 4H) that the backward passes need."""
     w = w_hh if cd is None else w_hh.astype(cd)  # cast once, outside the time loop
 
     def body(state, g_x):
         h, c = state
         pre = g_x + product(h, w, cd)
-        h, c = _cell(pre, c)
-        return (h, c), ((h, c, pre) if residuals else h)
+        if not residuals:
+            h, c = _cell(pre, c)
+            return (h, c), h
+        h, c, acts = _cell_with_gates(pre, c)
+        return (h, c), (h, c, acts)
 
     carry, ys = jax.lax.scan(body, carry, gx)
     return (ys, carry) if not residuals else (ys[0], carry, ys[1], ys[2])
@@ -113,33 +123,33 @@ def _recurrence_exact(gx, w_hh, carry):
 def _recurrence_exact_jvp(primals, tangents):
     """The float32 recurrence's tangent map, written so that its transpose is fast.
 
-    With residuals h_{t-1}, c_{t-1}, c_t and the pre-activations from one forward scan:
+    With residuals h_{t-1}, c_{t-1}, c_t and the activated gates from one forward scan:
     a_t = dgx_t + h_{t-1} dW (one matmul over all frames, outside the loop), then the
     linear scan dpre_t = a_t + dh_{t-1} W, dc_t = df' c_{t-1} + f dc_{t-1} + di' g + i dg',
     dh_t = do' tanh(c_t) + o (1 - tanh^2 c_t) dc_t (primes: the gates' derivatives times
     the matching slice of dpre_t). Reverse mode transposes it: the loop carries only
     (dh, dc) and does one matmul per frame (dpre_t W^T); dW = sum_t h_{t-1}^T dpre_t becomes
-    one matmul over all frames. The body is rematerialised (``jax.checkpoint``), so the
-    gates are recomputed from the stored pre-activations instead of being stored too.
+    one matmul over all frames. The body is rematerialised (``jax.checkpoint``), so it
+    stores nothing of its own: it reads the gates (no sigmoid or tanh but tanh(c_t)).
     """
     gx, w, carry = primals
     dgx, dw, (dh0, dc0) = tangents
-    hs, final, cs, pres = _recurrence_forward(gx, w, carry, None, residuals=True)
+    hs, final, cs, acts = _recurrence_forward(gx, w, carry, None, residuals=True)
     h_prev, c_prev = _previous(carry, hs, cs)
     a = dgx + jnp.matmul(h_prev, dw)
 
     @functools.partial(jax.checkpoint, prevent_cse=False)
     def body(state, inputs):
         dh, dc = state
-        a_t, pre, c_p, c = inputs
-        i, f, g, o = _gates(pre)
+        a_t, act, c_p, c = inputs
+        i, f, g, o = jnp.split(act, 4, axis=-1)
         di, df, dg, do = jnp.split(a_t + jnp.matmul(dh, w), 4, axis=-1)
         dc = df * f * (1.0 - f) * c_p + f * dc + di * i * (1.0 - i) * g + i * (1.0 - g * g) * dg
         tc = jnp.tanh(c)
         dh = do * o * (1.0 - o) * tc + o * (1.0 - tc * tc) * dc
         return (dh, dc), dh
 
-    (dh_last, dc_last), dhs = jax.lax.scan(body, (dh0, dc0), (a, pres, c_prev, cs))
+    (dh_last, dc_last), dhs = jax.lax.scan(body, (dh0, dc0), (a, acts, c_prev, cs))
     return (hs, final), (dhs, (dh_last, dc_last))
 
 
@@ -149,20 +159,20 @@ def _recurrence_low(gx, w_hh, carry, cd):
 
 
 def _recurrence_low_fwd(gx, w_hh, carry, cd):
-    hs, final, cs, pres = _recurrence_forward(gx, w_hh, carry, cd, residuals=True)
+    hs, final, cs, acts = _recurrence_forward(gx, w_hh, carry, cd, residuals=True)
     h_prev, c_prev = _previous(carry, hs, cs)
-    return (hs, final), (w_hh, h_prev, c_prev, cs, pres)
+    return (hs, final), (w_hh, h_prev, c_prev, cs, acts)
 
 
 def _recurrence_low_bwd(cd, res, cts):
-    w_hh, h_prev, c_prev, cs, pres = res
+    w_hh, h_prev, c_prev, cs, acts = res
     d_hs, (dh_last, dc_last) = cts
     w_t = w_hh.astype(cd).T
 
     def body(state, inputs):
         dh_next, dc_next = state
-        d_h, c_p, c, pre = inputs
-        i, f, g, o = _gates(pre)
+        d_h, c_p, c, act = inputs
+        i, f, g, o = jnp.split(act, 4, axis=-1)
         dh = d_h + dh_next
         tc = jnp.tanh(c)
         dc = dc_next + dh * o * (1.0 - tc * tc)
@@ -178,7 +188,7 @@ def _recurrence_low_bwd(cd, res, cts):
         return (product(d_pre, w_t, cd), dc * f), d_pre
 
     (dh0, dc0), d_pres = jax.lax.scan(
-        body, (dh_last, dc_last), (d_hs, c_prev, cs, pres), reverse=True
+        body, (dh_last, dc_last), (d_hs, c_prev, cs, acts), reverse=True
     )
     d_w = outer_sum(h_prev, d_pres, cd).astype(w_hh.dtype)
     return d_pres, d_w, (dh0, dc0)
