@@ -46,7 +46,7 @@ def use_persistent_cache() -> str | None:
     off, and a ``JAX_COMPILATION_CACHE_DIR`` set by the user wins (JAX reads it itself).
     Every compilation is kept, also the sub-second ones of data initialisation, so a
     repeated ``train`` of the same configuration skips XLA (a 300-step quick MoGlow: 48 s ->
-    43 s, docs/readme/speed.md). Results are identical: only compiled code is cached.
+    33-38 s, docs/readme/speed.md). Results are identical: only compiled code is cached.
     """
     choice = os.environ.get(PERSISTENT_CACHE_ENV, "").strip()
     if choice.lower() in ("0", "off", "false", "no") or os.environ.get("JAX_COMPILATION_CACHE_DIR"):

@@ -76,6 +76,11 @@ def inference_copy(module: nnx.Module, compute_dtype: str = "bfloat16") -> nnx.M
     set, each frame would instead re-read and re-cast them. ``module`` itself is unchanged
     (the float32 path stays exact). For sampling and streaming, not training: the copy's
     weights are not float32 parameters any more.
+
+    Measured on XLA:CPU (docs/readme/speed.md): its bfloat16 products at small batch are
+    slow (1-1.5 GB/s at batch 1), so there this copy samples *slower* than float32 at
+    batch 1 and no faster at batch 64. It is meant for devices with native bfloat16
+    products (GPUs; unmeasured so far).
     """
     name = jnp.dtype(compute_dtype).name
     copy = nnx.clone(module)
