@@ -74,7 +74,7 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
     model = Glow(
         POSE_DIM,
         levels=cfg["levels"],
-        steps=cfg["steps"],
+        K=cfg["steps"],
         hidden=cfg["hidden"],
         control_dim=CONTROL_DIM,
         compute_dtype=None if dtype == "float32" else dtype,

@@ -91,7 +91,7 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
         POSE_DIM,
         CONTROL_DIM,
         tau=cfg["tau"],
-        num_steps=cfg["K"],
+        K=cfg["K"],
         hidden=cfg["hidden"],
         num_layers=cfg["layers"],
         dropout=0.95,

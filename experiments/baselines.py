@@ -99,7 +99,7 @@ def sample(model, control, key, *, temperature=1.0, seed_pose=None):
     control, seed_pose = check_sample_args(control, temperature, seed_pose, "baselines.sample")
     if isinstance(model, DiagonalGaussian):
         return model.sample(key, control.shape[:2], temperature=temperature)
-    return model.sample(key, control, temperature=temperature, history=seed_pose)
+    return model.sample(key, control, temperature=temperature, seed_history=seed_pose)
 
 
 def fit(model, dataset, *, config: Config | None = None):

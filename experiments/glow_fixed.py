@@ -158,7 +158,7 @@ def build(config: Config, *, key: jax.Array) -> Glow:
     return Glow(
         POSE_DIM,
         levels=config.levels,
-        steps=config.K,
+        K=config.K,
         hidden=config.hidden,
         control_dim=CONTROL_DIM if config.conditional else 0,
         prior=config.prior,

@@ -192,7 +192,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         POSE_DIM,
         CONTROL_DIM,
         tau=config.tau,
-        num_steps=config.K,
+        K=config.K,
         hidden=config.hidden,
         num_layers=config.layers,
         conditioner=config.conditioner,

@@ -222,7 +222,7 @@ def sample(
     """Algorithm 1 of the paper: standardised poses (B, T, 63) for the control (B, T, 3).
     ``seed_pose`` (B, S, 63), S a multiple of 4: z_1 from the posterior of those frames."""
     control, seed_pose = check_sample_args(control, temperature, seed_pose, "vae_lstm.sample")
-    return model.sample(key, control, temperature=temperature, seed_frames=seed_pose)
+    return model.sample(key, control, temperature=temperature, seed_history=seed_pose)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ LOGS = "flows/0/steps/bijectors/2/logs"  # level 0: the K stacked ActNorms (last
 
 def _state(hidden: int = 4, seed: int = 0) -> dict:
     """A tiny Glow's params / rest, a step of Adam on them, and a typed PRNG key."""
-    model = Glow(6, levels=1, steps=2, hidden=hidden, control_dim=0, rngs=nnx.Rngs(seed))
+    model = Glow(6, levels=1, K=2, hidden=hidden, control_dim=0, rngs=nnx.Rngs(seed))
     _, params, rest = nnx.split(model, nnx.Param, ...)
     params = jax.tree.map(lambda p: p + 0.01 * (seed + 1), params)  # not the init values
     opt = optax.adam(1e-3)

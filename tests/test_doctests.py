@@ -11,7 +11,7 @@ import importlib
 
 import pytest
 
-MODULES = ["motionflows.distributions", "motionflows.pretrained"]
+MODULES = ["motionflows.deprecation", "motionflows.distributions", "motionflows.pretrained"]
 pytestmark = pytest.mark.strict_dtypes
 
 FLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE

@@ -567,7 +567,7 @@ def models():
     from motionflows.models.moglow import MoGlow
     from motionflows.models.vae_lstm import VAELSTM
 
-    moglow = MoGlow(63, 3, tau=2, num_steps=1, hidden=8, num_layers=1, rngs=jax.random.key(0))
+    moglow = MoGlow(63, 3, tau=2, K=1, hidden=8, num_layers=1, rngs=jax.random.key(0))
     vae = VAELSTM(kernel=3, latent_dim=8, control_hidden=8, control_features=8, pose_hidden=8,
                   pose_features=16, decoder_hidden=8, rngs=nnx.Rngs(0))  # fmt: skip
     return moglow, vae

@@ -42,7 +42,7 @@ def _perturb(model, key, scale=0.1):
 def _tiny(key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard"):
     k1, k2 = jax.random.split(key)
     model = Glow(
-        pose_dim, levels=2, steps=2, hidden=8, control_dim=control_dim, prior=prior,
+        pose_dim, levels=2, K=2, hidden=8, control_dim=control_dim, prior=prior,
         rngs=nnx.Rngs(k1),
     )  # fmt: skip
     return _perturb(model, k2)
@@ -201,7 +201,7 @@ def test_clear_errors(conditional, unconditional, key):
     with pytest.raises(ValueError, match="window"):
         dataclasses.replace(glow_fixed.PRESETS["quick"], levels=6)
     with pytest.raises(ValueError, match="prior"):
-        Glow(levels=1, steps=1, hidden=4, prior="laplace", rngs=nnx.Rngs(0))
+        Glow(levels=1, K=1, hidden=4, prior="laplace", rngs=nnx.Rngs(0))
 
 
 def test_unconditional_sampling(unconditional, key):

@@ -30,7 +30,7 @@ def _model(conditioner="lstm", seed=0, layers=1, **kw) -> MoGlow:
         D,
         C,
         tau=TAU,
-        num_steps=K,
+        K=K,
         hidden=H,
         num_layers=layers,
         conditioner=conditioner,
@@ -233,7 +233,7 @@ def test_window_scope_is_the_sampler_density(residual):
 
 
 def test_initialize_from_data_normalises_first_actnorm():
-    model = MoGlow(D, C, tau=TAU, num_steps=2, hidden=H, num_layers=1, rngs=jax.random.key(0))
+    model = MoGlow(D, C, tau=TAU, K=2, hidden=H, num_layers=1, rngs=jax.random.key(0))
     pose, control = _data(b=16, t=12)
     pose = 3.0 * pose + 5.0
     init = initialize_from_data(model, pose, context=control)
@@ -255,7 +255,7 @@ def test_bfloat16_close_to_float32_and_student_t():
         D,
         C,
         tau=TAU,
-        num_steps=K,
+        K=K,
         hidden=H,
         num_layers=1,
         compute_dtype="bfloat16",

@@ -76,9 +76,7 @@ def test_tiny_moglow_beats_linear_gaussian_and_follows_control():
     except ImportError:  # pragma: no cover
         pass
 
-    model = MoGlow(
-        D, C, tau=TAU, num_steps=3, hidden=32, num_layers=1, dropout=0.0, rngs=jax.random.key(0)
-    )
+    model = MoGlow(D, C, tau=TAU, K=3, hidden=32, num_layers=1, dropout=0.0, rngs=jax.random.key(0))
     model = initialize_from_data(model, train[0][:256], context=train[1][:256])
     graph, params, rest = nnx.split(model, nnx.Param, ...)
     opt = optax.adam(optax.cosine_decay_schedule(1e-2, 700, 0.05))

@@ -190,7 +190,7 @@ def test_test_time_recurrence_uses_only_z1():
             s5=model.sample(k5, c),
             cold4=model.sample(k4, c, temperature=0.0),
             cold5=model.sample(k5, c, temperature=0.0),
-            seeded=model.sample(k4, c, seed_frames=jnp.ones((2, 8, POSE_DIM))),
+            seeded=model.sample(k4, c, seed_history=jnp.ones((2, 8, POSE_DIM))),
         )
 
     r = run(model, c, z, z_other)
@@ -209,7 +209,7 @@ def test_test_time_recurrence_uses_only_z1():
     assert r["seeded"].shape == (2, 32, POSE_DIM)
     assert not np.allclose(r["seeded"], r["s4"])
     with pytest.raises(ValueError, match="multiple of 4"):
-        model.sample(jax.random.key(4), c, seed_frames=jnp.ones((2, 6, POSE_DIM)))
+        model.sample(jax.random.key(4), c, seed_history=jnp.ones((2, 6, POSE_DIM)))
 
 
 def test_faithful_mode_sigma_floor_unit_variance_and_unpooling():

@@ -30,6 +30,7 @@ import numpy as np
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.deprecation import renamed
 from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
 
@@ -159,20 +160,30 @@ class LinearGaussianAR(nnx.Module):
         control: jax.Array,
         *,
         temperature: float = 1.0,
+        seed_history: jax.Array | None = None,
         history: jax.Array | None = None,
     ) -> jax.Array:
         """Sample poses (B, T, D) for control (B, T, C) with ``lax.scan`` over frames.
 
-        ``history`` (B, S, D): the last ``tau`` of these frames seed the history (zeros if
-        None or shorter). Controls before frame 0 are zeros.
+        ``seed_history`` (B, S, D): the last ``tau`` of these frames seed the history (zeros
+        if None or shorter); ``history=`` is its deprecated old name. Controls before frame
+        0 are zeros.
         """
+        history = renamed(
+            "LinearGaussianAR.sample",
+            old="history",
+            new="seed_history",
+            old_value=history,
+            new_value=seed_history,
+            default=None,
+        )
         control = _check_pose(control, self.control_dim, "control")
         check_temperature(temperature, "LinearGaussianAR.sample")
         b, t = control.shape[0], control.shape[1]
         tau, d = self.tau, self.pose_dim
         hist = jnp.zeros((b, tau, d), jnp.float32)
         if history is not None and tau > 0:
-            history = _check_pose(history, d, "seed_pose")
+            history = _check_pose(history, d, "seed_history")
             s = min(tau, history.shape[1])
             if s > 0:
                 hist = hist.at[:, tau - s :].set(history[:, -s:].astype(jnp.float32))

@@ -52,6 +52,7 @@ from motionflows.bijectors import (
     unsqueeze_time,
 )
 from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
+from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, Transformed
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.conv import ConvNet, TimeConv
@@ -87,7 +88,7 @@ class Glow(nnx.Module):
     Args:
       pose_dim: channels D of a frame (63).
       levels: L, number of squeeze levels; T must be divisible by 2**L.
-      steps: K, flow steps per level (run by ``Scan``).
+      K: flow steps per level (run by ``Scan``; 32); ``steps=`` is its deprecated old name.
       hidden: width of the coupling nets' hidden convolutions (512 in the paper).
       control_dim: channels of the control (3); 0 or None = unconditional model.
       conditional: shorthand; False forces control_dim = 0 (None: decided by control_dim).
@@ -108,7 +109,7 @@ class Glow(nnx.Module):
         pose_dim: int = POSE_DIM,
         *,
         levels: int = 4,
-        steps: int = 32,
+        K: int | None = None,
         hidden: int = 512,
         control_dim: int | None = CONTROL_DIM,
         conditional: bool | None = None,
@@ -117,13 +118,15 @@ class Glow(nnx.Module):
         coupling_eps: float = 1e-6,
         length: int | None = None,
         rngs: nnx.Rngs,
+        steps: int | None = None,
     ):
+        K = renamed("Glow", old="steps", new="K", old_value=steps, new_value=K, default=32)
         if conditional is not None:
             control_dim = (control_dim or CONTROL_DIM) if conditional else 0
-        if int(levels) < 1 or int(steps) < 1 or int(hidden) < 1:
+        if int(levels) < 1 or int(K) < 1 or int(hidden) < 1:
             raise ValueError(
-                f"Glow needs levels >= 1, steps >= 1 and hidden >= 1, got levels={levels}, "
-                f"steps={steps}, hidden={hidden}"
+                f"Glow needs levels >= 1, K >= 1 and hidden >= 1, got levels={levels}, "
+                f"K={K}, hidden={hidden}"
             )
         if int(pose_dim) < 1:
             raise ValueError(f"Glow needs pose_dim >= 1, got {pose_dim}")
@@ -131,7 +134,7 @@ class Glow(nnx.Module):
             raise ValueError(f"Glow: prior must be one of {PRIORS}, got {prior!r}")
         self.pose_dim = int(pose_dim)
         self.levels = int(levels)
-        self.steps = int(steps)
+        self.K = int(K)
         self.hidden = int(hidden)
         self.control_dim = int(control_dim or 0)
         self.prior = prior
@@ -146,7 +149,7 @@ class Glow(nnx.Module):
         for level in range(self.levels):
             d = 2 * kept
             ctx = self.control_dim * 2 ** (level + 1)
-            flows.append(Scan(self._step_factory(d, ctx), self.steps, rngs=rngs.params()))
+            flows.append(Scan(self._step_factory(d, ctx), self.K, rngs=rngs.params()))
             if level < self.levels - 1:
                 split = Split(d)
                 splits.append(split)
@@ -360,6 +363,11 @@ class Glow(nnx.Module):
     def log_prob(self, x: Array, control: Array | None = None) -> Array:
         """log p(x | control) per window (...,) in nats, in the units of x (all T frames)."""
         return self.distribution().log_prob(x, context=control)
+
+    @property
+    def steps(self) -> int:
+        """The old name of :attr:`K` (read-only)."""
+        return self.K
 
     def sample(
         self,

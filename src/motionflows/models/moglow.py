@@ -73,6 +73,7 @@ from motionflows.bijectors import (
     coupling_sizes,
 )
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, StudentT
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.lstm import LSTM
@@ -309,7 +310,7 @@ class MoGlow(nnx.Module):
     Args:
       pose_dim, control_dim: D and C (default 63 and 3 from ``motionflows.data.names``).
       tau: history length (10).
-      num_steps: K flow steps (16).
+      K: the number of flow steps (16); ``num_steps=`` is its deprecated old name.
       hidden, num_layers: coupling LSTM size (512, 2).
       conditioner: ``"lstm"`` (MoGlow) or ``"ff"`` (the Markov feed-forward ablation).
       base: ``"normal"`` or ``"studentt"`` (standard, ``df`` degrees of freedom).
@@ -333,7 +334,7 @@ class MoGlow(nnx.Module):
         control_dim: int = CONTROL_DIM,
         *,
         tau: int = 10,
-        num_steps: int = 16,
+        K: int | None = None,
         hidden: int = 512,
         num_layers: int = 2,
         conditioner: str = "lstm",
@@ -345,24 +346,28 @@ class MoGlow(nnx.Module):
         residual: bool = False,
         dropout_keeps_last: bool = False,
         rngs: nnx.Rngs | Array,
+        num_steps: int | None = None,
     ):
+        K = renamed(
+            "MoGlow", old="num_steps", new="K", old_value=num_steps, new_value=K, default=16
+        )
         if conditioner not in ("lstm", "ff"):
             raise ValueError(f"conditioner must be 'lstm' or 'ff', got {conditioner!r}")
         if base not in ("normal", "studentt"):
             raise ValueError(f"base must be 'normal' or 'studentt', got {base!r}")
         if not 0.0 <= float(dropout) < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
-        if int(tau) < 1 or int(num_steps) < 1 or int(pose_dim) < 2 or int(control_dim) < 0:
+        if int(tau) < 1 or int(K) < 1 or int(pose_dim) < 2 or int(control_dim) < 0:
             raise ValueError(
-                f"MoGlow needs tau >= 1, num_steps >= 1, pose_dim >= 2; got tau={tau}, "
-                f"num_steps={num_steps}, pose_dim={pose_dim}"
+                f"MoGlow needs tau >= 1, K >= 1, pose_dim >= 2; got tau={tau}, "
+                f"K={K}, pose_dim={pose_dim}"
             )
         if compute_dtype is not None:
             compute_dtype = jnp.dtype(compute_dtype).name
         self.pose_dim = int(pose_dim)
         self.control_dim = int(control_dim)
         self.tau = int(tau)
-        self.num_steps = int(num_steps)
+        self.K = int(K)
         self.hidden = int(hidden)
         self.num_layers = int(num_layers)
         self.conditioner = conditioner
@@ -385,7 +390,7 @@ class MoGlow(nnx.Module):
             compute_dtype,
             self.eps,
         )
-        self.flow = Scan(factory, self.num_steps, rngs=rngs)
+        self.flow = Scan(factory, self.K, rngs=rngs)
 
     # -- validation
 
@@ -405,6 +410,11 @@ class MoGlow(nnx.Module):
         return pose, check_input(control, "control", f"MoGlow.{name}")
 
     # -- base density
+
+    @property
+    def num_steps(self) -> int:
+        """The old name of :attr:`K` (read-only)."""
+        return self.K
 
     def base_density(self) -> Normal | StudentT:
         """The per-frame base density over (D,): standard normal or standard Student-t."""

@@ -90,7 +90,7 @@ def import_stylegestures(
         pose_dim,
         control_dim,
         tau=tau,
-        num_steps=k_steps,
+        K=k_steps,
         hidden=hidden,
         num_layers=num_layers,
         compute_dtype=compute_dtype,

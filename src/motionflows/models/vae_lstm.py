@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
+from motionflows.deprecation import renamed
 from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
@@ -358,16 +359,26 @@ class VAELSTM(nnx.Module):
         control: jax.Array,
         *,
         temperature: float = 1.0,
+        seed_history: jax.Array | None = None,
         seed_frames: jax.Array | None = None,
     ) -> jax.Array:
         """Algorithm 1: z_1 ~ N(0, temperature^2 I), recurrent canvas, decoder mean.
 
-        control (B, T, 3) -> poses (B, T, 63), standardised. With ``seed_frames`` (B, S, 63),
+        control (B, T, 3) -> poses (B, T, 63), standardised. With ``seed_history`` (B, S, 63)
+        (``seed_frames=`` is its deprecated old name),
         S a positive multiple of 4 and <= T, z_1 is drawn from the posterior
         q(z_1 | seed frames) instead (its std scaled by ``temperature``); the returned
         frames are all decoded (the seed is not pasted in). The output is the decoder
         mean (no observation noise is added).
         """
+        seed_frames = renamed(
+            "VAELSTM.sample",
+            old="seed_frames",
+            new="seed_history",
+            old_value=seed_frames,
+            new_value=seed_history,
+            default=None,
+        )
         _, control = self._check(None, control, "VAELSTM.sample")
         check_temperature(temperature, "VAELSTM.sample")
         b = control.shape[0]
@@ -378,12 +389,12 @@ class VAELSTM(nnx.Module):
         else:
             if seed_frames.ndim != 3 or seed_frames.shape[0] != b:
                 raise ValueError(
-                    f"seed_frames must have shape (B={b}, S, {POSE_DIM}), "
+                    f"seed_history must have shape (B={b}, S, {POSE_DIM}), "
                     f"got {tuple(seed_frames.shape)}"
                 )
             seed_frames, _ = self._check(seed_frames, None, "VAELSTM.sample")
             if seed_frames.shape[1] > control.shape[1]:
-                raise ValueError("seed_frames must not be longer than the control")
+                raise ValueError("seed_history must not be longer than the control")
             mu, log_std = self.posterior(seed_frames)
             z1 = mu[:, :1] + temperature * jnp.exp(log_std[:, :1]) * eps
         n = h.shape[1]
