@@ -169,7 +169,7 @@ class LinearGaussianAR(nnx.Module):
         if None or shorter); ``history=`` is its deprecated old name. Controls before frame
         0 are zeros.
         """
-        history = renamed(
+        seed_history = renamed(
             "LinearGaussianAR.sample",
             old="history",
             new="seed_history",
@@ -182,11 +182,11 @@ class LinearGaussianAR(nnx.Module):
         b, t = control.shape[0], control.shape[1]
         tau, d = self.tau, self.pose_dim
         hist = jnp.zeros((b, tau, d), jnp.float32)
-        if history is not None and tau > 0:
-            history = _check_pose(history, d, "seed_history")
-            s = min(tau, history.shape[1])
+        if seed_history is not None and tau > 0:
+            seed_history = _check_pose(seed_history, d, "seed_history")
+            s = min(tau, seed_history.shape[1])
             if s > 0:
-                hist = hist.at[:, tau - s :].set(history[:, -s:].astype(jnp.float32))
+                hist = hist.at[:, tau - s :].set(seed_history[:, -s:].astype(jnp.float32))
         cp = jnp.concatenate([jnp.zeros((b, tau, self.control_dim), control.dtype), control], 1)
         weight, chol = self.weight[...], self.cholesky()
         eps = Normal((d,)).sample(key, (t, b), temperature=temperature)  # whitened residuals

@@ -371,7 +371,7 @@ class VAELSTM(nnx.Module):
         frames are all decoded (the seed is not pasted in). The output is the decoder
         mean (no observation noise is added).
         """
-        seed_frames = renamed(
+        seed_history = renamed(
             "VAELSTM.sample",
             old="seed_frames",
             new="seed_history",
@@ -384,18 +384,18 @@ class VAELSTM(nnx.Module):
         b = control.shape[0]
         h = self.encode_control(control)
         eps = jax.random.normal(key, (b, 1, self.latent_dim), jnp.float32)
-        if seed_frames is None:
+        if seed_history is None:
             z1 = temperature * eps
         else:
-            if seed_frames.ndim != 3 or seed_frames.shape[0] != b:
+            if seed_history.ndim != 3 or seed_history.shape[0] != b:
                 raise ValueError(
                     f"seed_history must have shape (B={b}, S, {POSE_DIM}), "
-                    f"got {tuple(seed_frames.shape)}"
+                    f"got {tuple(seed_history.shape)}"
                 )
-            seed_frames, _ = self._check(seed_frames, None, "VAELSTM.sample")
-            if seed_frames.shape[1] > control.shape[1]:
+            seed_history, _ = self._check(seed_history, None, "VAELSTM.sample")
+            if seed_history.shape[1] > control.shape[1]:
                 raise ValueError("seed_history must not be longer than the control")
-            mu, log_std = self.posterior(seed_frames)
+            mu, log_std = self.posterior(seed_history)
             z1 = mu[:, :1] + temperature * jnp.exp(log_std[:, :1]) * eps
         n = h.shape[1]
         z = jnp.concatenate([z1, jnp.zeros((b, n - 1, self.latent_dim), z1.dtype)], axis=1)
