@@ -84,6 +84,17 @@ def _time(fn, repeats: int) -> list[float]:
     return out
 
 
+def _time_sample(model, control, key, repeats: int) -> tuple[float, float]:
+    """(median ms per frame, compile seconds) of one jitted ``model.sample(key, control)``
+    over control (B, T, C), after one untimed call."""
+    t0 = time.perf_counter()
+    fn = jax.jit(lambda m, c, k: m.sample(k, c)).lower(model, control, key).compile()
+    compile_s = time.perf_counter() - t0
+    fn(model, control, key).block_until_ready()
+    times = _time(lambda: fn(model, control, key), repeats)
+    return 1e3 * statistics.median(times) / control.shape[1], compile_s
+
+
 def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1) -> dict:
     cd = None if dtype == "float32" else dtype
     k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
@@ -168,21 +179,15 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
         res["inference_copy_weight_bytes"] = roofline.tree_bytes(nnx.state(low, nnx.Param))
         for batch in (1, 64):
             ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-            fn = jax.jit(lambda m, c, k: m.sample(k, c)).lower(low, ctrl, k_sample).compile()
-            fn(low, ctrl, k_sample).block_until_ready()
-            st = _time(lambda fn=fn, ctrl=ctrl: fn(low, ctrl, k_sample), max(repeats, 3))
-            res[f"inference_copy_sample_ms_per_frame_b{batch}"] = 1e3 * statistics.median(st) / n
+            ms, _ = _time_sample(low, ctrl, k_sample, max(repeats, 3))
+            res[f"inference_copy_sample_ms_per_frame_b{batch}"] = ms
         low = None
 
     for batch in (1, 64):
         ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-        sampler = jax.jit(lambda m, c, k: m.sample(k, c))
-        t0 = time.perf_counter()
-        fn = sampler.lower(model, ctrl, k_sample).compile()
-        res[f"sample_compile_s_b{batch}"] = time.perf_counter() - t0
-        fn(model, ctrl, k_sample).block_until_ready()
-        st = _time(lambda fn=fn, ctrl=ctrl: fn(model, ctrl, k_sample), max(repeats, 3))
-        res[f"sample_ms_per_frame_b{batch}"] = 1e3 * statistics.median(st) / n
+        ms, compile_s = _time_sample(model, ctrl, k_sample, max(repeats, 3))
+        res[f"sample_compile_s_b{batch}"] = compile_s
+        res[f"sample_ms_per_frame_b{batch}"] = ms
         # floor per frame: the frame's matmuls at the peak, or all weights read once
         frame_flops = roofline.matmul_flops(lambda m, c, k: m.sample(k, c), model, ctrl, k_sample)
         floor = dict(
