@@ -11,7 +11,12 @@ import importlib
 
 import pytest
 
-MODULES = ["motionflows.deprecation", "motionflows.distributions", "motionflows.pretrained"]
+MODULES = [
+    "motionflows.deprecation",
+    "motionflows.distributions",
+    "motionflows.pretrained",
+    "motionflows.run",
+]
 pytestmark = pytest.mark.strict_dtypes
 
 FLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE

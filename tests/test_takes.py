@@ -75,6 +75,17 @@ def test_folder_of_the_test_takes_scores_as_the_test_split(tiny_run, tmp_path):
 
 
 @needs_data
+def test_a_folder_named_like_a_split_never_overwrites_its_table(tiny_run, tmp_path):
+    run_dir, _ = tiny_run
+    evaluate_run(run_dir, "test", print_table=False)
+    before = (run_dir / "eval_test.json").read_text()
+    folder = _folder(tmp_path / "test", TAKES[:3])
+    evaluate_run(run_dir, data=f"bvh:{folder}", print_table=False)
+    assert (run_dir / "eval_test.json").read_text() == before
+    assert json.loads((run_dir / "eval_takes_test.json").read_text())["data"] == f"bvh:{folder}"
+
+
+@needs_data
 def test_short_takes_are_skipped_and_bvh_control_is_the_clip_control(tmp_path):
     take = DEV / "dataset-1_walk_active_001.bvh"
     control = load_control(take, fps=20.0)

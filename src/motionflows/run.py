@@ -23,6 +23,7 @@ from motionflows import runs
 from motionflows.checkpoints import Checkpointer
 from motionflows.compile_cache import jitted_evaluate
 from motionflows.data import Standardizer
+from motionflows.data.datasets import SPLITS
 from motionflows.errors import RunError
 from motionflows.evaluation import likelihood
 from motionflows.windows import split_windows
@@ -164,13 +165,20 @@ def _takes(std, config, data: str, label: str | None, skeleton: str):
     for item in takes.skipped:
         print(f"skipped take {item}: shorter than one window", file=sys.stderr)
     extra = {"data": str(data), "takes": used, "skipped": takes.skipped}
-    return pose, control, _file_label(label or takes.label), f"{len(used)} takes of {data}", extra
+    return pose, control, data_label(label or takes.label), f"{len(used)} takes of {data}", extra
 
 
-def _file_label(text: str) -> str:
-    """``text`` made safe as part of a file name (letters, digits, ``-``, ``_``, ``.``)."""
+def data_label(text: str) -> str:
+    """The ``eval_<label>.json`` label of other takes: ``text`` made safe as part of a file
+    name (letters, digits, ``-``, ``_``, ``.``), and prefixed ``takes_`` when it is a split's
+    name, so that scoring a folder called ``test`` never overwrites the test split's table.
+
+    >>> data_label("D2 C/"), data_label("test")
+    ('D2_C', 'takes_test')
+    """
     out = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in str(text)).strip("._")
-    return out or "data"
+    out = out or "data"
+    return f"takes_{out}" if out in SPLITS else out
 
 
 def draw_samples(
