@@ -94,12 +94,16 @@ def evaluate(model, batch, key):
     }
 
 
-def sample(model, control, key, *, temperature=1.0, seed_pose=None):
-    """Poses (B, T, 63), standardised, for standardised control (B, T, 3)."""
-    control, seed_pose = check_sample_args(control, temperature, seed_pose, "baselines.sample")
+def sample(model, control, key, *, temperature=1.0, seed_history=None, seed_pose=None):
+    """Poses (B, T, 63), standardised, for standardised control (B, T, 3); the linear AR
+    starts from ``seed_history`` (B, S, 63) when given (``seed_pose``: its deprecated old
+    name), the Gaussian ignores it."""
+    control, seed_history = check_sample_args(
+        control, temperature, seed_history, "baselines.sample", seed_pose=seed_pose
+    )
     if isinstance(model, DiagonalGaussian):
         return model.sample(key, control.shape[:2], temperature=temperature)
-    return model.sample(key, control, temperature=temperature, seed_history=seed_pose)
+    return model.sample(key, control, temperature=temperature, seed_history=seed_history)
 
 
 def fit(model, dataset, *, config: Config | None = None):

@@ -193,14 +193,24 @@ def evaluate(model: Glow, batch: dict, key: jax.Array) -> dict:
     return {"window": model.log_prob(batch["pose"], _control(model, batch))}
 
 
-def sample(model: Glow, control, key, *, temperature: float = 1.0, seed_pose=None):
+def sample(
+    model: Glow,
+    control,
+    key,
+    *,
+    temperature: float = 1.0,
+    seed_history=None,
+    seed_pose=None,
+):
     """Poses (B, T, 63), standardised, for standardised control (B, T, 3).
 
-    The unconditional model uses the control only for its shape. ``seed_pose`` is ignored:
-    a fixed-length Glow generates the whole window at once and cannot condition on given
-    first frames.
+    The unconditional model uses the control only for its shape. ``seed_history`` (old
+    name ``seed_pose``, deprecated) is checked but ignored: a fixed-length Glow generates
+    the whole window at once and cannot condition on given first frames.
     """
-    control, _ = check_sample_args(control, temperature, None, "glow_fixed.sample")
+    control, _ = check_sample_args(
+        control, temperature, seed_history, "glow_fixed.sample", seed_pose=seed_pose
+    )
     if model.conditional:
         return model.sample(key, control, temperature=temperature)
     b, t = control.shape[:2]

@@ -217,12 +217,16 @@ def sample(
     key: jax.Array,
     *,
     temperature: float = 1.0,
+    seed_history: jax.Array | None = None,
     seed_pose: jax.Array | None = None,
 ) -> jax.Array:
     """Algorithm 1 of the paper: standardised poses (B, T, 63) for the control (B, T, 3).
-    ``seed_pose`` (B, S, 63), S a multiple of 4: z_1 from the posterior of those frames."""
-    control, seed_pose = check_sample_args(control, temperature, seed_pose, "vae_lstm.sample")
-    return model.sample(key, control, temperature=temperature, seed_history=seed_pose)
+    ``seed_history`` (B, S, 63), S a multiple of 4: z_1 from the posterior of those frames
+    (``seed_pose``: its deprecated old name)."""
+    control, seed_history = check_sample_args(
+        control, temperature, seed_history, "vae_lstm.sample", seed_pose=seed_pose
+    )
+    return model.sample(key, control, temperature=temperature, seed_history=seed_history)
 
 
 if __name__ == "__main__":

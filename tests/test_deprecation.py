@@ -36,3 +36,22 @@ def test_the_seed_history_keeps_its_old_names():
     with pytest.warns(DeprecationWarning, match="history= is deprecated, use seed_history="):
         y = model.sample(jax.random.key(1), control, history=seed)
     np.testing.assert_array_equal(x, y)
+
+
+def test_the_experiments_sample_takes_seed_history_and_warns_on_seed_pose():
+    import dataclasses
+
+    import experiments.moglow as exp
+
+    # residual: even a fresh model (zero coupling heads) adds its change to the seed's pose
+    config = dataclasses.replace(exp.PRESETS["smoke"], residual=True)
+    model = exp.build(config, key=jax.random.key(0))
+    control = jnp.zeros((2, 5, 3))
+    seed = jnp.ones((2, 4, 63))
+    x = exp.sample(model, control, jax.random.key(1), seed_history=seed)
+    with pytest.warns(DeprecationWarning, match="seed_pose= is deprecated, use seed_history="):
+        y = exp.sample(model, control, jax.random.key(1), seed_pose=seed)
+    np.testing.assert_array_equal(x, y)
+    assert not np.allclose(x, exp.sample(model, control, jax.random.key(1)))  # it is used
+    with pytest.raises(TypeError, match="pass seed_history= only"):
+        exp.sample(model, control, jax.random.key(1), seed_history=seed, seed_pose=seed)

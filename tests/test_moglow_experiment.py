@@ -59,7 +59,11 @@ def test_protocol_functions():
     # (fresh coupling heads are zero, so dropout cannot change the score yet)
     np.testing.assert_allclose(ll["official"], ll["official_dropout"], rtol=1e-5)
     x = exp.sample(
-        model, batch["control"], jax.random.key(4), temperature=0.5, seed_pose=batch["pose"][:, :3]
+        model,
+        batch["control"],
+        jax.random.key(4),
+        temperature=0.5,
+        seed_history=batch["pose"][:, :3],
     )
     assert x.shape == (4, 8, POSE_DIM) and np.all(np.isfinite(x))
     x0 = exp.sample(model, batch["control"], jax.random.key(4), temperature=0.0)

@@ -2,7 +2,8 @@
 
 One name per concept across the models: ``K`` for flow steps (``MoGlow``, ``Glow``; the
 experiments' configs already call it ``K``) and ``seed_history`` for the poses a sampler
-starts from (``MoGlow``, ``VAELSTM``, ``LinearGaussianAR``).
+starts from (``MoGlow``, ``VAELSTM``, ``LinearGaussianAR`` and every experiment's
+``sample``, whose old keyword was ``seed_pose``).
 
 Examples:
     >>> import warnings
@@ -24,10 +25,20 @@ from typing import Any
 __all__ = ["renamed"]
 
 
-def renamed(where: str, *, old: str, new: str, old_value: Any, new_value: Any, default: Any):
+def renamed(
+    where: str,
+    *,
+    old: str,
+    new: str,
+    old_value: Any,
+    new_value: Any,
+    default: Any,
+    stacklevel: int = 3,
+):
     """The value of an argument renamed from ``old`` to ``new`` (both keyword, None = not
     given): ``new_value``, else ``old_value`` with a ``DeprecationWarning``, else
-    ``default``. Both given is a ``TypeError`` naming the one to keep."""
+    ``default``. Both given is a ``TypeError`` naming the one to keep. ``stacklevel`` as
+    in ``warnings.warn`` (3: the caller of the function that calls ``renamed``)."""
     if old_value is None:
         return default if new_value is None else new_value
     if new_value is not None:
@@ -35,6 +46,6 @@ def renamed(where: str, *, old: str, new: str, old_value: Any, new_value: Any, d
     warnings.warn(
         f"{where}: {old}= is deprecated, use {new}= (same meaning)",
         DeprecationWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
     return old_value

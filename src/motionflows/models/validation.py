@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from motionflows.deprecation import renamed
+
 
 def is_concrete(x: Any) -> bool:
     """Whether ``x`` holds values now (not a tracer inside ``jax.jit`` / ``grad`` / ``scan``)."""
@@ -93,17 +95,33 @@ def check_temperature(temperature: Any, where: str) -> Any:
 
 
 def check_sample_args(
-    control: Any, temperature: Any, seed_pose: Any, where: str, *, control_dim: int = 3
+    control: Any,
+    temperature: Any,
+    seed_history: Any,
+    where: str,
+    *,
+    control_dim: int = 3,
+    seed_pose: Any = None,
 ) -> tuple[jax.Array, Any]:
     """The checks every experiment's ``sample(model, control, key, *, temperature,
-    seed_pose)`` makes before it jits: control (B, T, control_dim) floating, non-empty and
-    finite, the temperature finite and >= 0, ``seed_pose`` (if given) floating and finite.
-    Returns (control, seed_pose) as float32."""
+    seed_history)`` makes before it jits: control (B, T, control_dim) floating, non-empty
+    and finite, the temperature finite and >= 0, ``seed_history`` (if given) floating and
+    finite. ``seed_pose`` is the deprecated old name of ``seed_history`` (a
+    ``DeprecationWarning``). Returns (control, seed_history) as float32."""
+    seed_history = renamed(
+        where,
+        old="seed_pose",
+        new="seed_history",
+        old_value=seed_pose,
+        new_value=seed_history,
+        default=None,
+        stacklevel=4,  # the caller of the experiment's sample
+    )
     shape = tuple(np.shape(control)) if control is not None else None
     if shape is None or len(shape) != 3 or shape[-1] != control_dim:
         raise ValueError(f"{where}: control must be (B, T, {control_dim}), got {shape}")
     control = check_input(control, "control", where)
     check_temperature(temperature, where)
-    if seed_pose is not None:
-        seed_pose = check_input(seed_pose, "seed_pose", where)
-    return control, seed_pose
+    if seed_history is not None:
+        seed_history = check_input(seed_history, "seed_history", where)
+    return control, seed_history
