@@ -22,6 +22,10 @@ declare -A SETS=(
   [res-studentt]="residual=true base=studentt"
   [res-bf16]="residual=true compute_dtype=bfloat16"
   [res-keeplast]="residual=true dropout_keeps_last=true"
+  [res-noise0.03]="residual=true history_noise=0.03"
+  [res-noise0.1]="residual=true history_noise=0.1"
+  [res-noise0.01]="residual=true history_noise=0.01"
+  [res-noise0.003]="residual=true history_noise=0.003"
 )
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=(all residual res-dropout0 res-K8 res-hidden256 res-dropout0.95 res-ff res-tau5 res-studentt res-bf16 dropout0 res-tau20)

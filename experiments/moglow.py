@@ -51,6 +51,7 @@ class Config:
     df: float = 5.0  # Student-t degrees of freedom (base = "studentt")
     residual: bool = False  # flow x_t - x_{t-1} (our option; see MoGlow's docstring)
     dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (an ablation)
+    history_noise: float = 0.0  # std of training noise on the history poses (standardised)
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -65,6 +66,8 @@ class Config:
             )
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if not self.history_noise >= 0.0:
+            raise ValueError(f"history_noise must be >= 0, got {self.history_noise}")
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
                 f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}"
@@ -179,8 +182,8 @@ SCOPES: dict[str, Scope] = {
         skip="tau",
     ),
     "official_dropout": Scope(
-        "as 'official' but with the training-time history dropout (random, key-dependent), "
-        "comparable with the official validation curves",
+        "as 'official' but with the training-time history dropout (and history noise, if "
+        "set; random, key-dependent), comparable with the official validation curves",
         skip="tau",
     ),
 }
@@ -202,6 +205,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
         residual=config.residual,
         dropout_keeps_last=config.dropout_keeps_last,
+        history_noise=config.history_noise,
         rngs=key,
     )
 
@@ -213,7 +217,8 @@ def initialize(model: MoGlow, batch: dict, *, key: jax.Array) -> MoGlow:
 
 
 def loss(model: MoGlow, batch: dict, key: jax.Array):
-    """Mean NLL per target frame (nats, standardised) with history dropout from ``key``."""
+    """Mean NLL per target frame (nats, standardised) with history dropout (and
+    ``history_noise``) from ``key``."""
     pose = batch["pose"]
     ll = model.log_prob(pose, batch["control"], key=key)
     nll = -jnp.mean(ll) / model.num_targets(pose.shape[-2])
@@ -237,20 +242,29 @@ def window_log_prob(model: MoGlow, pose, control) -> jax.Array:
 
 
 @jax.jit
-def _sample(model, control, key, temperature, seed_pose):
-    return model.sample(key, control, seed_history=seed_pose, temperature=temperature)
+def _sample(model, control, key, temperature, seed_history):
+    return model.sample(key, control, seed_history=seed_history, temperature=temperature)
 
 
 def sample(
-    model: MoGlow, control, key: jax.Array, *, temperature: float = 1.0, seed_pose=None
+    model: MoGlow,
+    control,
+    key: jax.Array,
+    *,
+    temperature: float = 1.0,
+    seed_history=None,
+    seed_pose=None,
 ) -> jax.Array:
     """Poses (B, T, 63), standardised, following control (B, T, 3) (jitted scan over frames).
 
-    ``seed_pose``: None (zero history, the official start) or (B, S, 63) standardised poses
-    that precede the first frame (the last tau are used).
+    ``seed_history``: None (zero history, the official start) or (B, S, 63) standardised
+    poses that precede the first frame (the last tau are used); ``seed_pose`` is its
+    deprecated old name.
     """
-    control, seed_pose = check_sample_args(control, temperature, seed_pose, "moglow.sample")
-    return _sample(model, control, key, jnp.float32(temperature), seed_pose)
+    control, seed_history = check_sample_args(
+        control, temperature, seed_history, "moglow.sample", seed_pose=seed_pose
+    )
+    return _sample(model, control, key, jnp.float32(temperature), seed_history)
 
 
 if __name__ == "__main__":

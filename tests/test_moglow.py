@@ -160,6 +160,49 @@ def test_dropout_keeps_last_never_drops_the_previous_frame():
     )
 
 
+def test_history_pose_feeds_the_histories_and_not_the_targets():
+    pose, control = _data()
+    noisy = pose + 0.3 * jax.random.normal(jax.random.key(5), pose.shape)
+    for scope in ("official", "window"):
+        targets, cond = build_conditions(pose, control, TAU, scope=scope, history_pose=noisy)
+        clean_targets, _ = build_conditions(pose, control, TAU, scope=scope)
+        _, noisy_cond = build_conditions(noisy, control, TAU, scope=scope)
+        np.testing.assert_array_equal(targets, clean_targets)  # targets: the true poses
+        np.testing.assert_array_equal(cond, noisy_cond)  # histories: the given poses
+
+
+@pytest.mark.parametrize("residual", [False, True])
+def test_history_noise_corrupts_the_training_history_only(residual):
+    """Training (a key) scores x_t given x~_s = x_s + sigma * eps_s; the residual model adds
+    its change to the noisy x~_{t-1}; clean scoring and the zero padding are unaffected."""
+    sigma, key = 0.2, jax.random.key(3)
+    kw = dict(residual=residual)
+    clean, noisy = _model(**kw), _model(**kw, history_noise=sigma)
+    pose, control = _data(t=TAU + 1)  # one target frame in the official scope
+    np.testing.assert_allclose(clean.log_prob(pose, control), noisy.log_prob(pose, control))
+    assert not np.allclose(
+        clean.log_prob(pose, control, key=key), noisy.log_prob(pose, control, key=key)
+    )
+    # official scope, one target: p(x_tau | x~_0..tau-1) is the clean score of the poses with
+    # the noisy history in place of the true one (fails if the noise reached x_tau, or if the
+    # residual's base were the true x_{tau-1})
+    eps = jax.random.normal(jax.random.fold_in(key, 1), pose.shape)
+    swapped = jnp.concatenate([pose[:, :TAU] + sigma * eps[:, :TAU], pose[:, TAU:]], axis=1)
+    np.testing.assert_allclose(
+        noisy.log_prob(pose, control, key=key),
+        clean.log_prob(swapped, control),
+        rtol=1e-5,
+        atol=1e-4,
+    )
+    # window scope, T = 1: the only history is the zero padding, which stays exact
+    one = (pose[:, :1], control[:, :1])
+    np.testing.assert_allclose(
+        noisy.log_prob(*one, scope="window", key=key), clean.log_prob(*one, scope="window")
+    )
+    with pytest.raises(ValueError, match="history_noise"):
+        _model(history_noise=-0.1)
+
+
 def test_log_prob_dropout_uses_key():
     model = _model(dropout=0.5)
     pose, control = _data()

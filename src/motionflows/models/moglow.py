@@ -212,6 +212,7 @@ def build_conditions(
     dropout: float = 0.0,
     key: Array | None = None,
     keep_last: bool = False,
+    history_pose: Array | None = None,
 ) -> tuple[Array, Array]:
     """Targets and per-frame conditions of a batch of windows.
 
@@ -223,20 +224,24 @@ def build_conditions(
       dropout: history-dropout probability (needs ``key`` when > 0).
       keep_last: never drop x_{t-1} (only the older tau-1 frames); see ``MoGlow``'s
         ``dropout_keeps_last``.
+      history_pose: (B, T, D) the poses the histories are built from (default ``pose``;
+        ``MoGlow``'s ``history_noise`` passes noisy copies), the targets stay ``pose``.
     Returns:
       targets (B, T', D) and cond (B, T', tau*D + (tau+1)*C) with
       cond[:, s] = [x_{t-tau}, ..., x_{t-1}, m * ..., c_{t-tau}, ..., c_t] for t = s + offset.
     """
+    source = pose if history_pose is None else history_pose
     if scope == "window":
-        pose_p = jnp.pad(pose, [(0, 0)] * (pose.ndim - 2) + [(tau, 0), (0, 0)])
+        pad = [(0, 0)] * (pose.ndim - 2) + [(tau, 0), (0, 0)]
+        pose_p, source_p = jnp.pad(pose, pad), jnp.pad(source, pad)
         control_p = jnp.pad(control, [(0, 0)] * (control.ndim - 2) + [(tau, 0), (0, 0)])
     elif scope == "official":
-        pose_p, control_p = pose, control
+        pose_p, source_p, control_p = pose, source, control
     else:
         raise ValueError(f"unknown scope {scope!r}: use 'official' or 'window'")
     n = pose_p.shape[-2] - tau  # number of target frames
     targets = pose_p[..., tau:, :]
-    hist = jnp.stack([pose_p[..., j : j + n, :] for j in range(tau)], axis=-2)  # (.., n, tau, D)
+    hist = jnp.stack([source_p[..., j : j + n, :] for j in range(tau)], axis=-2)  # (.., n, tau, D)
     ctrl = jnp.stack([control_p[..., j : j + n, :] for j in range(tau + 1)], axis=-2)
     if dropout > 0.0:
         if key is None:
@@ -251,7 +256,7 @@ def build_conditions(
 
 
 def previous_frames(pose: Array, tau: int, scope: str = "official") -> Array:
-    """The true pose before each target frame of :func:`build_conditions`: (B, T', D).
+    """The pose before each target frame of :func:`build_conditions`: (B, T', D).
 
     ``"official"``: frames tau-1 .. T-2; ``"window"``: a zero frame, then frames 0 .. T-2.
     """
@@ -325,6 +330,13 @@ class MoGlow(nnx.Module):
         frames (our option, an ablation of the long-run drift of ``residual`` models: at
         the `cpu` size it improves the NLL by ~20 nats/frame but worsens rollouts; see
         docs/readme/moglow_quality.md#long-runs-drift).
+      history_noise: standard deviation (standardised units) of Gaussian noise added to
+        every history pose when :meth:`log_prob` is given a key (training): the histories
+        and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
+        eps_s, eps_s ~ N(0, I) per frame, while the targets stay the true x_t. The model
+        then learns p(x_t | noisy history), which teaches it to correct its own past errors
+        instead of integrating them (our option, against exposure bias; 0 = off). Scoring
+        without a key and sampling use the clean history.
       rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
     """
 
@@ -345,6 +357,7 @@ class MoGlow(nnx.Module):
         eps: float = 1e-6,
         residual: bool = False,
         dropout_keeps_last: bool = False,
+        history_noise: float = 0.0,
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -357,6 +370,8 @@ class MoGlow(nnx.Module):
             raise ValueError(f"base must be 'normal' or 'studentt', got {base!r}")
         if not 0.0 <= float(dropout) < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if not float(history_noise) >= 0.0:
+            raise ValueError(f"history_noise must be >= 0, got {history_noise}")
         if int(tau) < 1 or int(K) < 1 or int(pose_dim) < 2 or int(control_dim) < 0:
             raise ValueError(
                 f"MoGlow needs tau >= 1, K >= 1, pose_dim >= 2; got tau={tau}, "
@@ -378,6 +393,7 @@ class MoGlow(nnx.Module):
         self.eps = float(eps)
         self.residual = bool(residual)
         self.dropout_keeps_last = bool(dropout_keeps_last)
+        self.history_noise = float(history_noise)
         self.cond_dim = self.tau * self.pose_dim + (self.tau + 1) * self.control_dim
         if not isinstance(rngs, nnx.Rngs):
             rngs = nnx.Rngs(rngs)
@@ -436,11 +452,14 @@ class MoGlow(nnx.Module):
         scope: str = "official",
         dropout: float = 0.0,
         key: Array | None = None,
+        history_noise: float = 0.0,
     ) -> tuple[Array, Array]:
         """Data -> latent for the target frames of windows.
 
         pose (B, T, D), context = control (B, T, C) -> (z (B, T', D), log|det dz/dx| (B,)),
-        T' = T - tau ("official") or T ("window"). Used by ``initialize_from_data``.
+        T' = T - tau ("official") or T ("window"). ``dropout`` and ``history_noise`` (the
+        training-time corruptions of the history, see the class docstring) need ``key``.
+        Used by ``initialize_from_data``.
         """
         pose, context = self._check(pose, context, "inverse_and_log_det")
         if scope == "official" and pose.shape[1] <= self.tau:
@@ -449,6 +468,12 @@ class MoGlow(nnx.Module):
                 f"tau={self.tau} frames, got T={pose.shape[1]}; use longer windows or "
                 "scope='window'"
             )
+        history = pose
+        if history_noise > 0.0:
+            if key is None:
+                raise ValueError("history_noise > 0 needs a jax.random key")
+            noise_key = jax.random.fold_in(key, 1)  # `key` itself draws the dropout mask
+            history = pose + history_noise * jax.random.normal(noise_key, pose.shape)
         targets, cond = build_conditions(
             pose,
             context,
@@ -457,10 +482,12 @@ class MoGlow(nnx.Module):
             dropout=dropout,
             key=key,
             keep_last=self.dropout_keeps_last,
+            history_pose=history,
         )
-        if self.residual:  # the changes x_t - x_{t-1} of the target frames (log-det 0)
-            changes = Difference(self.pose_dim).inverse(pose)
-            targets = changes[..., changes.shape[-2] - targets.shape[-2] :, :]
+        if self.residual:  # the changes x_t - x~_{t-1} of the target frames (log-det 0),
+            # by the sampler's own Difference frame step, every target frame at once
+            previous = previous_frames(history, self.tau, scope)
+            targets = Difference(self.pose_dim).inverse_step(targets, carry=previous)[0]
         return self.flow.inverse_and_log_det(targets, context=cond)
 
     def log_prob(
@@ -476,7 +503,8 @@ class MoGlow(nnx.Module):
 
         ``scope="official"``: frames tau..T-1 given the first tau; ``"window"``: all T frames
         with a zero history. With ``key`` the training-time history dropout (probability
-        ``dropout``, default ``self.dropout``) is applied; without a key there is none.
+        ``dropout``, default ``self.dropout``) and ``self.history_noise`` are applied;
+        without a key there is neither.
         """
         if key is None and dropout:
             raise ValueError(
@@ -486,7 +514,12 @@ class MoGlow(nnx.Module):
         rate = 0.0 if key is None else (self.dropout if dropout is None else float(dropout))
         pose, control = self._check(pose, control, "log_prob")  # messages name log_prob
         z, log_det = self.inverse_and_log_det(
-            pose, context=control, scope=scope, dropout=rate, key=key
+            pose,
+            context=control,
+            scope=scope,
+            dropout=rate,
+            key=key,
+            history_noise=0.0 if key is None else self.history_noise,
         )
         return jnp.sum(self.base_log_prob(z), axis=-1) + log_det
 

@@ -1,0 +1,122 @@
+"""How a sampler's motion degrades over a long run: bone-length drift, foot sliding and jerk
+per block of seconds of one long control.
+
+For each run (a run directory or ``pretrained:NAME``) it samples ``--samples`` rollouts of
+``--seconds`` of the control ``--control`` (a preset name, a ``.npy`` or a ``.bvh``) and
+prints, per ``--block``-second block:
+
+* bone error (m): mean over samples and bones of |length - its mean over the first second|
+  (a rigid skeleton that keeps its proportions gives 0);
+* foot sliding (m/s, calibrated ``floor`` contact rule) and contact rate;
+* world jerk (m/s^3).
+
+Used for the long-run table of docs/readme/moglow_quality.md::
+
+    python benchmarks/long_run_drift.py pretrained:moglow-bandai runs/quality/X/run \\
+        --control walk-turn-run --seconds 12 --samples 8 --temperature 0.6
+
+Causal models only (the fixed-length Glow samples windows of its training length).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from motionflows.data import load_control
+from motionflows.evaluation.motion import bone_lengths, contact_rate, foot_sliding, jerk
+from motionflows.pretrained.model import PretrainedModel
+
+
+def _load(spec: str) -> PretrainedModel:
+    if spec.startswith("pretrained:"):
+        from motionflows import pretrained
+
+        return pretrained.load(spec.split(":", 1)[1])
+    return PretrainedModel.from_run(spec)
+
+
+def drift_table(
+    pose: np.ndarray, control: np.ndarray, *, fps: float, block: int, reference: int
+) -> list[dict]:
+    """Per block of ``block`` frames: bone error, foot sliding, contact rate, jerk.
+
+    pose (B, T, 63) metres, control (B, T, 3) data units; ``reference`` frames at the start
+    give each sample's reference bone lengths.
+    """
+    bones = bone_lengths(pose)  # (B, T, 20)
+    error = np.abs(bones - bones[:, :reference].mean(1, keepdims=True)).mean(-1).mean(0)
+    rows = []
+    for start in range(0, pose.shape[1] - block + 1, block):
+        s = slice(start, start + block)
+        rows.append(
+            {
+                "seconds": [start / fps, (start + block) / fps],
+                "bone_error_m": float(error[s].mean()),
+                "foot_sliding_m_s": foot_sliding(pose[:, s], control[:, s], fps=fps),
+                "contact_rate": contact_rate(pose[:, s]),
+                "jerk_m_s3": jerk(pose[:, s], fps=fps, control=control[:, s]),
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="run directories or pretrained:NAME")
+    p.add_argument("--control", default="walk-turn-run")
+    p.add_argument("--seconds", type=float, default=12.0)
+    p.add_argument("--samples", type=int, default=8)
+    p.add_argument(
+        "--temperature",
+        type=float,
+        default=None,
+        help="default: each model's validated temperature",
+    )
+    p.add_argument("--block", type=float, default=2.0, help="seconds per block")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    for spec in args.runs:
+        model = _load(spec)
+        if model.fixed_length:
+            print(f"{spec}: a fixed-length model; long runs need a causal one", file=sys.stderr)
+            return 2
+        fps = model.fps
+        control = load_control(args.control, seconds=args.seconds, fps=fps)
+        control = np.repeat(control[None], args.samples, 0)
+        temperature = model.temperature if args.temperature is None else args.temperature
+        pose = model.sample(control, seed=args.seed, temperature=temperature)
+        rows = drift_table(
+            pose, control, fps=fps, block=round(args.block * fps), reference=round(fps)
+        )
+        print(
+            json.dumps(
+                {
+                    "run": spec,
+                    "temperature": temperature,
+                    "control": args.control,
+                    "samples": args.samples,
+                    "blocks": rows,
+                }
+            )
+        )
+        head = " | ".join(f"{r['seconds'][0]:g}-{r['seconds'][1]:g} s" for r in rows)
+        print(
+            f"# {spec} (T = {temperature:g}, {args.samples} x {args.seconds:g} s "
+            f"{args.control})\n| | {head} |"
+        )
+        for key, fmt in (
+            ("bone_error_m", "{:.3f}"),
+            ("foot_sliding_m_s", "{:.2f}"),
+            ("contact_rate", "{:.2f}"),
+            ("jerk_m_s3", "{:.0f}"),
+        ):
+            print(f"| {key} | " + " | ".join(fmt.format(r[key]) for r in rows) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
