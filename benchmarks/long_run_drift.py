@@ -27,16 +27,10 @@ import sys
 import numpy as np
 
 from motionflows.data import load_control
+from motionflows.errors import RunError
 from motionflows.evaluation.motion import bone_lengths, contact_rate, foot_sliding, jerk
 from motionflows.pretrained.model import PretrainedModel
-
-
-def _load(spec: str) -> PretrainedModel:
-    if spec.startswith("pretrained:"):
-        from motionflows import pretrained
-
-        return pretrained.load(spec.split(":", 1)[1])
-    return PretrainedModel.from_run(spec)
+from motionflows.runs import resolve_run_dir
 
 
 def drift_table(
@@ -80,7 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     for spec in args.runs:
-        model = _load(spec)
+        try:
+            model = PretrainedModel.from_run(resolve_run_dir(spec))
+        except RunError as e:
+            print(f"long_run_drift: {e}", file=sys.stderr)
+            return 2
         if model.fixed_length:
             print(f"{spec}: a fixed-length model; long runs need a causal one", file=sys.stderr)
             return 2

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,8 +41,6 @@ def test_the_seed_history_keeps_its_old_names():
 
 
 def test_the_experiments_sample_takes_seed_history_and_warns_on_seed_pose():
-    import dataclasses
-
     import experiments.moglow as exp
 
     # residual: even a fresh model (zero coupling heads) adds its change to the seed's pose

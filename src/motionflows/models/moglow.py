@@ -230,15 +230,16 @@ def build_conditions(
       targets (B, T', D) and cond (B, T', tau*D + (tau+1)*C) with
       cond[:, s] = [x_{t-tau}, ..., x_{t-1}, m * ..., c_{t-tau}, ..., c_t] for t = s + offset.
     """
-    source = pose if history_pose is None else history_pose
-    if scope == "window":
-        pad = [(0, 0)] * (pose.ndim - 2) + [(tau, 0), (0, 0)]
-        pose_p, source_p = jnp.pad(pose, pad), jnp.pad(source, pad)
-        control_p = jnp.pad(control, [(0, 0)] * (control.ndim - 2) + [(tau, 0), (0, 0)])
-    elif scope == "official":
-        pose_p, source_p, control_p = pose, source, control
-    else:
+    if scope not in ("official", "window"):
         raise ValueError(f"unknown scope {scope!r}: use 'official' or 'window'")
+
+    def widen(x):  # "window": tau zero frames before frame 0
+        if scope == "official":
+            return x
+        return jnp.pad(x, [(0, 0)] * (x.ndim - 2) + [(tau, 0), (0, 0)])
+
+    pose_p, control_p = widen(pose), widen(control)
+    source_p = pose_p if history_pose is None else widen(history_pose)
     n = pose_p.shape[-2] - tau  # number of target frames
     targets = pose_p[..., tau:, :]
     hist = jnp.stack([source_p[..., j : j + n, :] for j in range(tau)], axis=-2)  # (.., n, tau, D)
@@ -321,11 +322,12 @@ class MoGlow(nnx.Module):
       base: ``"normal"`` or ``"studentt"`` (standard, ``df`` degrees of freedom).
       dropout: history-dropout probability used by :meth:`log_prob` when given a key.
       compute_dtype: ``None`` (float32) or ``"bfloat16"`` for the conditioner matmuls.
-      residual: flow the change ``x_t - x_{t-1}`` instead of ``x_t`` (the true previous pose,
-        never dropped; zero before frame 0). A shift by a function of the history, so the
-        log-determinant is unchanged and the density of x_t is exact; the ActNorm data
-        initialisation then sees the per-frame change, whose scale is the predictable part
-        a plain MoGlow needs many steps to learn (see docs/readme/moglow_quality.md).
+      residual: flow the change ``x_t - x_{t-1}`` instead of ``x_t`` (the previous pose,
+        never dropped, noisy in training with ``history_noise``; zero before frame 0). A
+        shift by a function of the history, so the log-determinant is unchanged and the
+        density of x_t is exact; the ActNorm data initialisation then sees the per-frame
+        change, whose scale is the predictable part a plain MoGlow needs many steps to
+        learn (see docs/readme/moglow_quality.md).
       dropout_keeps_last: history dropout never drops x_{t-1}, only the older tau - 1
         frames (our option, an ablation of the long-run drift of ``residual`` models: at
         the `cpu` size it improves the NLL by ~20 nats/frame but worsens rollouts; see
