@@ -46,30 +46,8 @@ PAPER = {"levels": 4, "steps": 32, "hidden": 512, "batch": 64, "window": 80}
 QUICK = {"levels": 2, "steps": 2, "hidden": 32, "batch": 8, "window": 16}  # a smoke test
 
 
-def _median_time(fn, repeats: int) -> tuple[float, list[float]]:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
-
-
-def _memory(compiled) -> dict:
-    try:
-        mem = compiled.memory_analysis()
-        return {
-            "temp_bytes": int(mem.temp_size_in_bytes),
-            "argument_bytes": int(mem.argument_size_in_bytes),
-            "output_bytes": int(mem.output_size_in_bytes),
-        }
-    except Exception:  # noqa: BLE001 - not every backend reports it
-        return {}
-
-
-def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> dict:
-    """Time one configuration at one conditioner precision."""
-    k_model, k_pose, k_ctrl, k_sample = jax.random.split(key, 4)
+def _build(cfg: dict, dtype: str, k_model) -> tuple[Glow, float]:
+    """(the Glow of ``cfg`` at the conditioner precision ``dtype``, seconds to build it)."""
     t0 = time.perf_counter()
     model = Glow(
         POSE_DIM,
@@ -80,14 +58,11 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
         compute_dtype=None if dtype == "float32" else dtype,
         rngs=nnx.Rngs(k_model),
     )
-    build_s = time.perf_counter() - t0
-    b, t = cfg["batch"], cfg["window"]
-    pose = jax.random.normal(k_pose, (b, t, POSE_DIM))
-    control = jax.random.normal(k_ctrl, (b, t, CONTROL_DIM))
-    graph, params, rest = nnx.split(model, nnx.Param, ...)
-    n_params = sum(int(x.size) for x in jax.tree.leaves(params))
-    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
-    opt_state = opt.init(params)
+    return model, time.perf_counter() - t0
+
+
+def _train_step(graph, rest, opt, t: int):
+    """One Adam step on the mean NLL per frame of ``t``-frame windows: (params, state, loss)."""
 
     def train_step(p, s, pose, control):
         def loss(p):
@@ -98,50 +73,46 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
         updates, s = opt.update(grads, s, p)
         return optax.apply_updates(p, updates), s, value
 
-    res: dict = {"dtype": dtype, "params": n_params, "build_s": build_s}
-    peak = peaks["gemm"][dtype]["flops_per_s"]
-    res["weight_bytes"] = roofline.tree_bytes(params)
-    # weights that fit in a cache are read at the cache's speed: read an array of their size
-    res["weight_read"] = roofline.memory_bandwidth(
-        max(res["weight_bytes"], 1 << 20), peaks["memory_repeats"]
+    return train_step
+
+
+def _time_training(res: dict, train_step, args: tuple, peak: float, repeats: int):
+    """Add the training step's FLOPs, compile, memory, times and floor; return trained params."""
+    b, t = args[2].shape[:2]  # pose (B, T, D)
+    res["train_flops"] = roofline.matmul_flops(train_step, *args)
+    compiled, res["train_compile_s"] = roofline.compile_timed(
+        jax.jit(train_step, donate_argnums=(0, 1)), *args
     )
-    res["train_flops"] = roofline.matmul_flops(train_step, params, opt_state, pose, control)
-    t0 = time.perf_counter()
-    compiled = (
-        jax.jit(train_step, donate_argnums=(0, 1)).lower(params, opt_state, pose, control).compile()
-    )
-    res["train_compile_s"] = time.perf_counter() - t0
-    res["train_memory"] = _memory(compiled)
-    state = {"p": params, "s": opt_state}
+    res["train_memory"] = roofline.compiled_memory(compiled)
+    state = {"p": args[0], "s": args[1]}
 
     def run_train():
-        state["p"], state["s"], value = compiled(state["p"], state["s"], pose, control)
+        state["p"], state["s"], value = compiled(state["p"], state["s"], *args[2:])
         return value
 
     first_loss = float(run_train())  # warm-up
-    res["train_step_s"], res["train_step_s_all"] = _median_time(run_train, repeats)
+    times = roofline.timings(run_train, repeats)
+    res["train_step_s"], res["train_step_s_all"] = statistics.median(times), times
     res["train_frames_per_s"] = b * t / res["train_step_s"]
     res["train_step_floor"] = roofline.floor_entry(
         res["train_step_s"], flops=res["train_flops"], peak_flops_per_s=peak
     )
     res["train_loss_first_last"] = [first_loss, float(run_train())]
+    return state["p"]
 
-    model = nnx.merge(graph, state["p"], rest)
+
+def _time_sampling(res: dict, model, control, key, repeats: int, peak: float) -> None:
+    """Add the sampler's compile time, memory, times, FLOPs and floor (whole batch) to ``res``."""
     sampler = jax.jit(lambda m, c, k: m.sample(k, c))
-    t0 = time.perf_counter()
-    fn = sampler.lower(model, control, k_sample).compile()
-    res["sample_compile_s"] = time.perf_counter() - t0
-    res["sample_memory"] = _memory(fn)
-    out = fn(model, control, k_sample)
+    fn, res["sample_compile_s"] = roofline.compile_timed(sampler, model, control, key)
+    res["sample_memory"] = roofline.compiled_memory(fn)
+    out = fn(model, control, key)
     out.block_until_ready()
     res["sample_finite"] = bool(jnp.all(jnp.isfinite(out)))
-    res["sample_s"], res["sample_s_all"] = _median_time(
-        lambda: fn(model, control, k_sample), max(repeats, 3)
-    )
-    res["sample_ms_per_frame"] = 1e3 * res["sample_s"] / (b * t)
-    res["sample_flops"] = roofline.matmul_flops(
-        lambda m, c, k: m.sample(k, c), model, control, k_sample
-    )
+    times = roofline.timings(lambda: fn(model, control, key), max(repeats, 3))
+    res["sample_s"], res["sample_s_all"] = statistics.median(times), times
+    res["sample_ms_per_frame"] = 1e3 * res["sample_s"] / (control.shape[0] * control.shape[1])
+    res["sample_flops"] = roofline.matmul_flops(lambda m, c, k: m.sample(k, c), model, control, key)
     res["sample_floor"] = roofline.floor_entry(
         res["sample_s"],
         flops=res["sample_flops"],
@@ -149,6 +120,28 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
         bytes_read=res["weight_bytes"],
         bandwidth_bytes_per_s=res["weight_read"]["bytes_per_s"],
     )
+
+
+def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> dict:
+    """Time one configuration at one conditioner precision."""
+    k_model, k_pose, k_ctrl, k_sample = jax.random.split(key, 4)
+    model, build_s = _build(cfg, dtype, k_model)
+    b, t = cfg["batch"], cfg["window"]
+    pose = jax.random.normal(k_pose, (b, t, POSE_DIM))
+    control = jax.random.normal(k_ctrl, (b, t, CONTROL_DIM))
+    graph, params, rest = nnx.split(model, nnx.Param, ...)
+    n_params = sum(int(x.size) for x in jax.tree.leaves(params))
+    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
+    opt_state = opt.init(params)
+    train_step = _train_step(graph, rest, opt, t)
+
+    res: dict = {"dtype": dtype, "params": n_params, "build_s": build_s}
+    peak = peaks["gemm"][dtype]["flops_per_s"]
+    res["weight_bytes"] = roofline.tree_bytes(params)
+    res["weight_read"] = roofline.weight_read(res["weight_bytes"], peaks["memory_repeats"])
+    trained = _time_training(res, train_step, (params, opt_state, pose, control), peak, repeats)
+    model = nnx.merge(graph, trained, rest)
+    _time_sampling(res, model, control, k_sample, repeats, peak)
     res["device_peak_bytes"] = roofline.device_peak_bytes()
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return res

@@ -66,9 +66,9 @@ def score(
     rows = []
     for temp in temperatures:
         sampler = bench.make_sampler(exp, temp)
-        samples = bench.draw_samples(sampler, model, ctrl, jax.random.fold_in(key, 20))
+        samples = bench.sample_in_chunks(sampler, model, ctrl, jax.random.fold_in(key, 20))
         one = np.repeat(ctrl[:1], bench.EVAL_CHUNK, axis=0)
-        div = bench.draw_samples(sampler, model, one, jax.random.fold_in(key, 21))[:16]
+        div = bench.sample_in_chunks(sampler, model, one, jax.random.fold_in(key, 21))[:16]
         metrics = bench.motion_metrics(
             np.asarray(st.denormalize_pose(samples), np.float32),
             control_m,
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     p.add_argument("--sample-windows", type=int, default=64, help="test controls sampled")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--on", default="test", choices=["val", "test"], help="split scored")
-    p.add_argument("--run", default=None, help="score this finished run only (no training)")
+    p.add_argument("--run", default=None, help="score this run (a path or pretrained:NAME) only")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -120,8 +120,9 @@ def main(argv=None) -> int:
     temps = _parse_floats(args.temperatures)
     results = []
     if args.run:  # score an existing run (its own data config) at its best checkpoint
-        _, run_config, _, dataset = load_run(args.run)
-        rows, nll, gt = score(Path(args.run), dataset, temps, windows=args.windows,
+        run_path = runs.resolve_run_dir(args.run)  # a path or pretrained:NAME
+        _, run_config, _, dataset = load_run(run_path)
+        rows, nll, gt = score(run_path, dataset, temps, windows=args.windows,
                               seed=args.seed, sample_windows=args.sample_windows,
                               split=args.on, checkpoint="best")  # fmt: skip
         steps = int(run_config.train.steps)

@@ -75,29 +75,18 @@ TARGETS = {  # issue 16
 }
 
 
-def _time(fn, repeats: int) -> list[float]:
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        out.append(time.perf_counter() - t0)
-    return out
-
-
 def _time_sample(model, control, key, repeats: int) -> tuple[float, float]:
     """(median ms per frame, compile seconds) of one jitted ``model.sample(key, control)``
     over control (B, T, C), after one untimed call."""
-    t0 = time.perf_counter()
-    fn = jax.jit(lambda m, c, k: m.sample(k, c)).lower(model, control, key).compile()
-    compile_s = time.perf_counter() - t0
+    sampler = jax.jit(lambda m, c, k: m.sample(k, c))
+    fn, compile_s = roofline.compile_timed(sampler, model, control, key)
     fn(model, control, key).block_until_ready()
-    times = _time(lambda: fn(model, control, key), repeats)
+    times = roofline.timings(lambda: fn(model, control, key), repeats)
     return 1e3 * statistics.median(times) / control.shape[1], compile_s
 
 
-def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1) -> dict:
-    cd = None if dtype == "float32" else dtype
-    k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
+def _model_and_data(cfg: dict, compute_dtype, k_model, k_data):
+    """The MoGlow of ``cfg``, random pose/control windows, ActNorm initialised from them."""
     model = MoGlow(
         POSE_DIM,
         CONTROL_DIM,
@@ -106,7 +95,7 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
         hidden=cfg["hidden"],
         num_layers=cfg["layers"],
         dropout=0.95,
-        compute_dtype=cd,
+        compute_dtype=compute_dtype,
         rngs=k_model,
     )
     b, t = cfg["batch"], cfg["window"]
@@ -114,10 +103,11 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     pose = jax.random.normal(kp, (b, t, POSE_DIM))
     control = jax.random.normal(kc, (b, t, CONTROL_DIM))
     model = initialize_from_data(model, pose[:8], context=control[:8])
-    graph, params, rest = nnx.split(model, nnx.Param, ...)
-    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
-    opt_state = opt.init(params)
-    n_targets = t - cfg["tau"]
+    return model, pose, control
+
+
+def _train_step(graph, rest, opt, n_targets: int):
+    """One Adam step on the mean NLL per target frame: (params, opt state, loss)."""
 
     def train_step(p, s, pose, control, key):
         def loss(p):
@@ -128,97 +118,114 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
         updates, s = opt.update(grads, s, p)
         return optax.apply_updates(p, updates), s, value
 
-    peak = peaks["gemm"][dtype]["flops_per_s"]
-    weight_bytes = roofline.tree_bytes(params)
-    # weights that fit in a cache are read at the cache's speed: read an array of their size
-    read = roofline.memory_bandwidth(max(weight_bytes, 1 << 20), peaks["memory_repeats"])
-    bandwidth = read["bytes_per_s"]
-    res: dict = {"dtype": dtype, "weight_bytes": weight_bytes, "weight_read": read}
-    res["train_flops"] = roofline.matmul_flops(train_step, params, opt_state, pose, control, k_drop)
-    t0 = time.perf_counter()
-    compiled = jax.jit(train_step).lower(params, opt_state, pose, control, k_drop).compile()
-    res["train_compile_s"] = time.perf_counter() - t0
-    try:
-        mem = compiled.memory_analysis()
-        res["train_temp_bytes"] = int(mem.temp_size_in_bytes)
-        res["train_argument_bytes"] = int(mem.argument_size_in_bytes)
-    except Exception:  # noqa: BLE001 - not every backend reports it
-        pass
-    state = {"p": params, "s": opt_state}
+    return train_step
+
+
+def _time_training(res: dict, train_step, args: tuple, peak: float, repeats: int, warmup: int):
+    """Add the training step's FLOPs, compile time, memory, step times and floor to ``res``."""
+    res["train_flops"] = roofline.matmul_flops(train_step, *args)
+    compiled, res["train_compile_s"] = roofline.compile_timed(jax.jit(train_step), *args)
+    mem = roofline.compiled_memory(compiled)
+    for name in ("temp_bytes", "argument_bytes"):
+        if name in mem:
+            res[f"train_{name}"] = mem[name]
+    state = {"p": args[0], "s": args[1], "value": None}
 
     def run_train():
-        state["p"], state["s"], value = compiled(state["p"], state["s"], pose, control, k_drop)
-        return value
+        state["p"], state["s"], state["value"] = compiled(state["p"], state["s"], *args[2:])
+        return state["value"]
 
-    first = []
-    for _ in range(warmup):
-        t0 = time.perf_counter()
-        jax.block_until_ready(run_train())
-        first.append(time.perf_counter() - t0)
+    first = roofline.timings(run_train, warmup)
     res["first_step_s"] = first[0] if first else None
-    times, value = [], None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        value = jax.block_until_ready(run_train())
-        times.append(time.perf_counter() - t0)
+    times = roofline.timings(run_train, repeats)
     res["train_step_s"] = statistics.median(times)
     res["train_step_s_all"] = times
     res["train_step_floor"] = roofline.floor_entry(
         res["train_step_s"], flops=res["train_flops"], peak_flops_per_s=peak
     )
-    res["train_loss"] = float(value)
+    res["train_loss"] = float(state["value"])
     if first:
         res["first_step_over_steady"] = first[0] / res["train_step_s"]
     res["peak_rss_mb_after_training"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    state.clear()  # free the training buffers before sampling
-    compiled = run_train = None
+    # returning frees the training buffers before sampling
+
+
+def _time_inference_copy(res: dict, model, compute_dtype, n: int, key, repeats: int) -> None:
+    """Add the sampling ms/frame of a copy with the weights *stored* in ``compute_dtype``."""
+    low = inference_copy(model, compute_dtype)
+    res["inference_copy_weight_bytes"] = roofline.tree_bytes(nnx.state(low, nnx.Param))
+    for batch in (1, 64):
+        ctrl = jax.random.normal(key, (batch, n, CONTROL_DIM))
+        ms, _ = _time_sample(low, ctrl, key, max(repeats, 3))
+        res[f"inference_copy_sample_ms_per_frame_b{batch}"] = ms
+
+
+def _time_sampling(res: dict, model, ctrl, key, repeats: int, bounds: dict) -> dict:
+    """Add ``sample``'s compile time, ms/frame and floor to ``res``; return the floor's terms."""
+    batch, n = ctrl.shape[:2]
+    ms, compile_s = _time_sample(model, ctrl, key, max(repeats, 3))
+    res[f"sample_compile_s_b{batch}"] = compile_s
+    res[f"sample_ms_per_frame_b{batch}"] = ms
+    # floor per frame: the frame's matmuls at the peak, or all weights read once
+    frame_flops = roofline.matmul_flops(lambda m, c, k: m.sample(k, c), model, ctrl, key)
+    floor = dict(flops=frame_flops / n, **bounds)
+    res[f"sample_floor_b{batch}"] = roofline.floor_entry(
+        res[f"sample_ms_per_frame_b{batch}"] / 1e3, **floor
+    )
+    return floor
+
+
+def _time_streaming(res: dict, model, ctrl, key, floor: dict) -> None:
+    """Add the latency of one jitted ``stream_step`` per frame from the host (game loop)."""
+    batch, n = ctrl.shape[:2]
+    step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k))
+    stream = model.init_stream(batch)
+    x_t, stream = step(model, stream, ctrl[:, 0], key)
+    x_t.block_until_ready()
+    lat = []
+    for i in range(1, n):
+        t0 = time.perf_counter()
+        x_t, stream = step(model, stream, ctrl[:, i], key)
+        x_t.block_until_ready()
+        lat.append(time.perf_counter() - t0)
+    res[f"stream_step_ms_b{batch}_median"] = 1e3 * statistics.median(lat)
+    res[f"stream_step_ms_b{batch}_p95"] = 1e3 * sorted(lat)[int(0.95 * (len(lat) - 1))]
+    res[f"stream_step_floor_b{batch}"] = roofline.floor_entry(
+        res[f"stream_step_ms_b{batch}_median"] / 1e3, **floor
+    )
+    stream_floor = res[f"stream_step_floor_b{batch}"]
+    stream_floor["multiple_of_floor_p95"] = (
+        res[f"stream_step_ms_b{batch}_p95"] / 1e3 / stream_floor["floor_s"]
+    )
+
+
+def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1) -> dict:
+    """Time training, sampling and streaming at one conditioner precision."""
+    cd = None if dtype == "float32" else dtype
+    k_model, k_data, k_drop, k_sample = jax.random.split(key, 4)
+    model, pose, control = _model_and_data(cfg, cd, k_model, k_data)
+    graph, params, rest = nnx.split(model, nnx.Param, ...)
+    opt = optax.chain(optax.clip(5.0), optax.clip_by_global_norm(100.0), optax.adam(1e-3))
+    opt_state = opt.init(params)
+    train_step = _train_step(graph, rest, opt, cfg["window"] - cfg["tau"])
+
+    peak = peaks["gemm"][dtype]["flops_per_s"]
+    weight_bytes = roofline.tree_bytes(params)
+    read = roofline.weight_read(weight_bytes, peaks["memory_repeats"])
+    res: dict = {"dtype": dtype, "weight_bytes": weight_bytes, "weight_read": read}
+    args = (params, opt_state, pose, control, k_drop)
+    _time_training(res, train_step, args, peak, repeats, warmup)
 
     n = cfg["sample_frames"]
     if cd is not None:  # the same sampler from a copy with the weights *stored* in bfloat16
-        low = inference_copy(model, cd)
-        res["inference_copy_weight_bytes"] = roofline.tree_bytes(nnx.state(low, nnx.Param))
-        for batch in (1, 64):
-            ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-            ms, _ = _time_sample(low, ctrl, k_sample, max(repeats, 3))
-            res[f"inference_copy_sample_ms_per_frame_b{batch}"] = ms
-        low = None
-
+        _time_inference_copy(res, model, cd, n, k_sample, repeats)
+    bounds = dict(
+        peak_flops_per_s=peak, bytes_read=weight_bytes, bandwidth_bytes_per_s=read["bytes_per_s"]
+    )
     for batch in (1, 64):
         ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-        ms, compile_s = _time_sample(model, ctrl, k_sample, max(repeats, 3))
-        res[f"sample_compile_s_b{batch}"] = compile_s
-        res[f"sample_ms_per_frame_b{batch}"] = ms
-        # floor per frame: the frame's matmuls at the peak, or all weights read once
-        frame_flops = roofline.matmul_flops(lambda m, c, k: m.sample(k, c), model, ctrl, k_sample)
-        floor = dict(
-            flops=frame_flops / n,
-            peak_flops_per_s=peak,
-            bytes_read=weight_bytes,
-            bandwidth_bytes_per_s=bandwidth,
-        )
-        res[f"sample_floor_b{batch}"] = roofline.floor_entry(
-            res[f"sample_ms_per_frame_b{batch}"] / 1e3, **floor
-        )
-        # streaming: one jitted stream_step per frame from the host (game-loop latency)
-        step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k))
-        stream = model.init_stream(batch)
-        x_t, stream = step(model, stream, ctrl[:, 0], k_sample)
-        x_t.block_until_ready()
-        lat = []
-        for i in range(1, n):
-            t0 = time.perf_counter()
-            x_t, stream = step(model, stream, ctrl[:, i], k_sample)
-            x_t.block_until_ready()
-            lat.append(time.perf_counter() - t0)
-        res[f"stream_step_ms_b{batch}_median"] = 1e3 * statistics.median(lat)
-        res[f"stream_step_ms_b{batch}_p95"] = 1e3 * sorted(lat)[int(0.95 * (len(lat) - 1))]
-        res[f"stream_step_floor_b{batch}"] = roofline.floor_entry(
-            res[f"stream_step_ms_b{batch}_median"] / 1e3, **floor
-        )
-        stream_floor = res[f"stream_step_floor_b{batch}"]
-        stream_floor["multiple_of_floor_p95"] = (
-            res[f"stream_step_ms_b{batch}_p95"] / 1e3 / stream_floor["floor_s"]
-        )
+        floor = _time_sampling(res, model, ctrl, k_sample, repeats, bounds)
+        _time_streaming(res, model, ctrl, k_sample, floor)
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["device_peak_bytes"] = roofline.device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res

@@ -11,33 +11,28 @@ import pytest
 # ``motionflows`` command turns on) out of it, so tests neither read stale entries nor
 # write to the user's cache; tests/test_compile_cache.py checks the cache itself.
 os.environ.setdefault("MOTIONFLOWS_COMPILE_CACHE", "0")
+# Commands the suite starts in a subprocess run under the same strict dtype promotion as the
+# tests themselves (this process read its JAX config at the import above).
+os.environ.setdefault("JAX_NUMPY_DTYPE_PROMOTION", "strict")
 
 
 def pytest_configure(config):
     config.addinivalue_line(
         "markers",
-        "strict_dtypes: run under jax_numpy_dtype_promotion='strict' (no implicit dtype "
-        "promotion: mixing float32 with int32 or bfloat16 raises instead of silently widening)",
-    )
-    config.addinivalue_line(
-        "markers",
-        "standard_dtypes: opt one test of a strict_dtypes module out (optax's Adam computes "
-        "float ** int32 in its bias correction, which strict promotion refuses)",
+        "standard_dtypes: run one test under JAX's standard dtype promotion instead of the "
+        "suite's strict one (for tests that call a third-party transform directly, such as "
+        "optax's Adam, whose bias correction computes float ** int32)",
     )
 
 
 @pytest.fixture(autouse=True)
 def _dtype_promotion(request):
-    """Strict dtype promotion for tests marked ``strict_dtypes`` (and not ``standard_dtypes``).
-
-    Opt-in per module (``pytestmark = pytest.mark.strict_dtypes``): JAX's own
-    ``JAX_NUMPY_DTYPE_PROMOTION=strict`` applies it to everything, and optax's Adam fails then.
+    """Every test runs under ``jax.numpy_dtype_promotion("strict")``: mixing float32 with
+    int32 or bfloat16 raises instead of silently widening, so an implicit promotion in the
+    library fails the suite. Mark a test ``standard_dtypes`` to opt it out.
     """
-    node = request.node
-    if node.get_closest_marker("strict_dtypes") and not node.get_closest_marker("standard_dtypes"):
-        with jax.numpy_dtype_promotion("strict"):
-            yield
-    else:
+    mode = "standard" if request.node.get_closest_marker("standard_dtypes") else "strict"
+    with jax.numpy_dtype_promotion(mode):
         yield
 
 

@@ -18,8 +18,6 @@ from motionflows.models.baselines import (
     fit_linear_ar,
 )
 
-pytestmark = pytest.mark.strict_dtypes
-
 D, C, TAU = 3, 2, 2
 
 

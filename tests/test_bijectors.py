@@ -453,7 +453,11 @@ def test_actnorm_formula():
 
 def test_initialize_from_data_normalises_and_is_pure():
     an = bj.ActNorm(D)
-    x = 3.0 * jax.random.normal(jax.random.key(1), (16, T, D)) + jnp.arange(D) - 2.0
+    x = (
+        3.0 * jax.random.normal(jax.random.key(1), (16, T, D))
+        + jnp.arange(D, dtype=jnp.float32)
+        - 2.0
+    )
     new = bj.initialize_from_data(an, x)
     assert float(jnp.max(jnp.abs(an.bias[...]))) == 0.0  # input model untouched
     mean, std = _channel_stats(new.inverse(x))

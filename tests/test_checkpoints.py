@@ -18,8 +18,6 @@ from motionflows import pretrained, runs
 from motionflows.checkpoints import Checkpointer
 from motionflows.models.glow import Glow
 
-pytestmark = pytest.mark.strict_dtypes
-
 LOGS = "flows/0/steps/bijectors/2/logs"  # level 0: the K stacked ActNorms (last in the chain)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from motionflows import bijectors as bj
 from motionflows.models.baselines import LinearGaussianAR
 from motionflows.models.glow import Glow
 from motionflows.models.moglow import MoGlow
@@ -28,6 +29,10 @@ def test_flow_steps_are_called_K_and_the_old_names_warn():
     with pytest.warns(DeprecationWarning, match="steps= is deprecated, use K="):
         old_glow = Glow(6, levels=1, steps=2, hidden=4, control_dim=0, rngs=nnx.Rngs(0))
     assert glow.K == old_glow.K == old_glow.steps == 2
+    scan = bj.Scan(lambda r: bj.ActNorm(3), K=2, rngs=nnx.Rngs(0))
+    with pytest.warns(DeprecationWarning, match="Scan: num_steps= is deprecated, use K="):
+        old_scan = bj.Scan(lambda r: bj.ActNorm(3), num_steps=2, rngs=nnx.Rngs(0))
+    assert scan.K == old_scan.K == old_scan.num_steps == len(old_scan.unrolled().bijectors) == 2
 
 
 def test_the_seed_history_keeps_its_old_names():
@@ -55,3 +60,11 @@ def test_the_experiments_sample_takes_seed_history_and_warns_on_seed_pose():
     assert not np.allclose(x, exp.sample(model, control, jax.random.key(1)))  # it is used
     with pytest.raises(TypeError, match="pass seed_history= only"):
         exp.sample(model, control, jax.random.key(1), seed_history=seed, seed_pose=seed)
+
+
+def test_the_bench_chunked_sampler_has_its_own_name():
+    from motionflows import bench, run
+
+    with pytest.warns(DeprecationWarning, match="use bench.sample_in_chunks"):
+        old = bench.draw_samples
+    assert old is bench.sample_in_chunks and bench.sample_in_chunks is not run.draw_samples

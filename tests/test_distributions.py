@@ -13,7 +13,7 @@ from motionflows import bijectors as bj
 from motionflows.distributions import Normal, StudentT, Transformed
 from motionflows.nets import coupling_mlp
 
-pytestmark = [pytest.mark.usefixtures("fast_compilation"), pytest.mark.strict_dtypes]
+pytestmark = pytest.mark.usefixtures("fast_compilation")
 
 T, D = 3, 2
 
@@ -206,6 +206,6 @@ def test_transformed_samples_a_model_with_only_the_log_det_pair():
 
 
 def test_this_module_runs_under_strict_dtype_promotion():
-    """The ``strict_dtypes`` marker is in force: float32 + int32 raises, not widens."""
+    """The suite's strict dtype promotion is in force: float32 + int32 raises, not widens."""
     with pytest.raises(jax.dtypes.TypePromotionError):
         jnp.ones(2, jnp.float32) + jnp.ones(2, jnp.int32)

@@ -17,7 +17,7 @@ MODULES = [
     "motionflows.pretrained",
     "motionflows.run",
 ]
-pytestmark = pytest.mark.strict_dtypes
+
 
 FLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
 

@@ -20,8 +20,6 @@ from motionflows.distributions import Normal, Transformed
 from motionflows.models.glow import Glow
 from motionflows.nets.conv import ConvNet, TimeConv
 
-pytestmark = pytest.mark.strict_dtypes
-
 
 def _perturb(model, key, scale=0.1):
     """Add noise to every trainable parameter (zero-init heads included): non-trivial maps.

@@ -113,7 +113,7 @@ def test_log_det_matches_jacobian(scope, residual):
 
 def test_history_dropout_rate_and_pattern():
     b, t, rate = 400, 13, 0.7
-    pose = jnp.ones((b, t, D)) + jnp.arange(D)  # no zeros anywhere in the data
+    pose = jnp.ones((b, t, D)) + jnp.arange(D, dtype=jnp.float32)  # no zeros anywhere in the data
     control = jnp.ones((b, t, C))
     _, cond = build_conditions(pose, control, TAU, dropout=rate, key=jax.random.key(0))
     hist = np.asarray(cond[..., : TAU * D]).reshape(b, t - TAU, TAU, D)
@@ -140,7 +140,7 @@ def test_history_dropout_rate_and_pattern():
 
 def test_dropout_keeps_last_never_drops_the_previous_frame():
     b, t, rate = 200, 13, 0.9
-    pose = jnp.ones((b, t, D)) + jnp.arange(D)
+    pose = jnp.ones((b, t, D)) + jnp.arange(D, dtype=jnp.float32)
     control = jnp.ones((b, t, C))
     key = jax.random.key(0)
     _, cond = build_conditions(pose, control, TAU, dropout=rate, key=key, keep_last=True)

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pytest
 from flax import nnx
 
 from motionflows.bijectors import initialize_from_data
@@ -60,6 +61,7 @@ def linear_ar_nll(train, test):
     return float(np.mean(0.5 * (quad + logdet + D * np.log(2 * np.pi))))
 
 
+@pytest.mark.standard_dtypes  # optax.adam called directly
 def test_tiny_moglow_beats_linear_gaussian_and_follows_control():
     train, test = oscillator(2048, 0), oscillator(512, 1)
     baseline = linear_ar_nll(train, test)

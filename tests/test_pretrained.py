@@ -59,6 +59,37 @@ def test_export_holds_no_optimiser_state_and_loads_like_the_run(exported):
         export_run(run_dir, out)
 
 
+def test_a_failed_overwrite_keeps_the_old_export_and_the_run_is_read_once(
+    exported, tmp_path, monkeypatch
+):
+    from motionflows import export as export_module
+    from motionflows.checkpoints import Checkpointer
+
+    run_dir, out = exported
+    again = export_run(run_dir, tmp_path / "copy", temperature=0.5)
+    before = {p.relative_to(again): p.read_bytes() for p in again.rglob("*") if p.is_file()}
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(export_module, "_write_export", broken)
+    with pytest.raises(OSError, match="disk full"):
+        export_run(run_dir, again, overwrite=True)
+    after = {p.relative_to(again): p.read_bytes() for p in again.rglob("*") if p.is_file()}
+    assert after == before  # nothing already saved is lost
+    assert [p.name for p in tmp_path.iterdir()] == ["copy"]  # no temporary folder left
+    monkeypatch.undo()
+
+    reads = []
+    original = Checkpointer.restore
+    monkeypatch.setattr(
+        Checkpointer, "restore", lambda self, *a, **k: reads.append(1) or original(self, *a, **k)
+    )
+    export_run(run_dir, again, overwrite=True)
+    assert len(reads) == 1
+    assert json.loads((again / "pretrained.json").read_text())["step"] == 3
+
+
 def test_pretrained_model_speaks_data_units(exported):
     run_dir, out = exported
     model = PretrainedModel.from_run(out)

@@ -24,6 +24,7 @@ def tour_code() -> str:
     return match.group(1)
 
 
+@pytest.mark.standard_dtypes  # the README code is user code: JAX's default promotion, optax.adam
 def test_readme_tour_trains_and_samples(capsys):
     namespace: dict = {"__name__": "readme_tour"}
     exec(compile(tour_code(), "README.md:Tour", "exec"), namespace)  # noqa: S102

@@ -218,6 +218,7 @@ def test_noam_schedule_matches_the_official_rule():
         TrainConfig(schedule="linear")
 
 
+@pytest.mark.standard_dtypes  # optax transforms called directly
 def test_optimizer_clips_values_then_norm_and_warms_up():
     tc = TrainConfig(lr=1.0, clip_value=1.0, clip_norm=1.0, warmup_steps=4, optimizer="adam")
     sched = learning_rate_schedule(tc)

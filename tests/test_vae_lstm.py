@@ -27,9 +27,6 @@ TINY = dict(latent_dim=8, control_hidden=8, control_features=8, pose_hidden=8,
             pose_features=16, decoder_hidden=8)  # fmt: skip
 
 
-pytestmark = pytest.mark.strict_dtypes
-
-
 def _tiny(key=0, **kw) -> VAELSTM:
     return VAELSTM(**{"kernel": 5, **TINY, **kw}, rngs=nnx.Rngs(key))
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
 from pathlib import Path
 
 from flax import nnx
@@ -48,7 +49,7 @@ def export_run(
     export; otherwise a non-empty ``out`` is refused.
     """
     from motionflows import runs
-    from motionflows.run import load_run
+    from motionflows.run import restore_run
 
     run_dir = runs.check_run_dir(run_dir)
     out = Path(out)
@@ -56,20 +57,38 @@ def export_run(
         raise RunError(f"--out {out} is a file; give a folder for the exported run")
     if out.resolve() == run_dir.resolve():
         raise RunError("--out must differ from the run directory")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise RunError(f"--out {out} is not empty; choose a new folder (or pass --overwrite)")
-        shutil.rmtree(out)
-    module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise RunError(f"--out {out} is not empty; choose a new folder (or pass --overwrite)")
+    module, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
     _, params, rest = nnx.split(model, nnx.Param, ...)
-    source = Checkpointer(run_dir / "checkpoints")
+    which, meta = saved["which"], saved["meta"]
+    step = int(meta["step"])
+    # written next to ``out`` and moved into place at the end: a failure on the way leaves
+    # an existing export as it was
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    tmp.chmod(0o755)  # mkdtemp makes it private; an export is meant to be shared
     try:
-        which = checkpoint if source.latest_step(checkpoint) is not None else "latest"
-        step = int(source.latest_step(which))
-        meta = source.restore({"params": params, "rest": rest}, which=which)[1]
-    finally:
-        source.close()
-    out.mkdir(parents=True, exist_ok=True)
+        _write_export(run_dir, tmp, params, rest, step, meta, which)
+        info = {"experiment": module.NAME, "step": step, "checkpoint": which}
+        if temperature is not None:
+            info["temperature"] = float(temperature)
+        if notes:
+            info["notes"] = notes
+        (tmp / "pretrained.json").write_text(json.dumps(info, indent=2) + "\n")
+        if config.data.source == "bandai":
+            (tmp / "LICENSE.md").write_text(BANDAI_NOTE)
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _write_export(run_dir: Path, out: Path, params, rest, step: int, meta: dict, which: str):
+    """The copied files and the parameters-only checkpoint ``out/checkpoints/best/<step>``."""
     for name in COPIED:
         if (run_dir / name).is_file():
             shutil.copy2(run_dir / name, out / name)
@@ -85,12 +104,3 @@ def export_run(
     latest = out / "checkpoints" / "latest"
     if latest.is_dir() and not any(latest.iterdir()):  # the manager's empty folder
         latest.rmdir()
-    info = {"experiment": module.NAME, "step": step, "checkpoint": which}
-    if temperature is not None:
-        info["temperature"] = float(temperature)
-    if notes:
-        info["notes"] = notes
-    (out / "pretrained.json").write_text(json.dumps(info, indent=2) + "\n")
-    if config.data.source == "bandai":
-        (out / "LICENSE.md").write_text(BANDAI_NOTE)
-    return out

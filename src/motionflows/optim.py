@@ -111,7 +111,10 @@ def make_train_step(module: Any, graphdef: Any, optimizer: optax.GradientTransfo
 
         (loss, metrics), grads = jax.value_and_grad(objective, has_aux=True)(params)
         grad_norm = optax.tree.norm(grads)
-        updates, new_opt = optimizer.update(grads, opt_state, params)
+        # optax's Adam bias correction computes ``decay ** count`` (float ** int32), which
+        # strict dtype promotion refuses; the library's own maths stays strict-clean.
+        with jax.numpy_dtype_promotion("standard"):
+            updates, new_opt = optimizer.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
         finite = (
             jnp.isfinite(loss) & jnp.isfinite(grad_norm) & jnp.isfinite(optax.tree.norm(updates))

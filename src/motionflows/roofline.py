@@ -210,3 +210,39 @@ def device_peak_bytes() -> int | None:
     if not stats:
         return None
     return int(stats.get("peak_bytes_in_use", stats.get("bytes_in_use", 0)))
+
+
+def weight_read(weight_bytes: int, repeats: int) -> dict:
+    """Read bandwidth (:func:`memory_bandwidth`) over an array the size of the weights."""
+    # weights that fit in a cache are read at the cache's speed: read an array of their size
+    return memory_bandwidth(max(weight_bytes, 1 << 20), repeats)
+
+
+def timings(fn: Callable[[], Any], repeats: int) -> list[float]:
+    """Seconds of each of ``repeats`` calls of ``fn`` (each waited for until ready)."""
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def compile_timed(jitted: Callable, *args) -> tuple[Any, float]:
+    """(compiled, seconds) of the ahead-of-time ``jitted.lower(*args).compile()``."""
+    t0 = time.perf_counter()
+    compiled = jitted.lower(*args).compile()
+    return compiled, time.perf_counter() - t0
+
+
+def compiled_memory(compiled) -> dict:
+    """XLA's temp, argument and output bytes of a compiled function ({} if not reported)."""
+    try:
+        mem = compiled.memory_analysis()
+        return {
+            "temp_bytes": int(mem.temp_size_in_bytes),
+            "argument_bytes": int(mem.argument_size_in_bytes),
+            "output_bytes": int(mem.output_size_in_bytes),
+        }
+    except Exception:  # noqa: BLE001 - not every backend reports it
+        return {}

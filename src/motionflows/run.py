@@ -71,6 +71,17 @@ def load_run(
     ``checkpoint``: "best" (falls back to "latest" if no best exists) or "latest".
     ``dataset``: reuse an already loaded dataset; ``load_data=False`` returns None.
     """
+    module, config, model, _ = restore_run(run_dir, checkpoint=checkpoint)
+    if dataset is None and load_data:
+        dataset = config.data.load()
+    return module, config, model, dataset
+
+
+def restore_run(run_dir: str | Path, *, checkpoint: str = "best"):
+    """``(module, config, model, saved)``: the run's model with the parameters of its
+    ``checkpoint`` ("best", falling back to "latest"; or "latest"), restored once.
+    ``saved`` = ``{"which": the checkpoint read, "meta": its metadata}`` (``meta["step"]``
+    is the step of the newest complete checkpoint, the one restored)."""
     run_dir = runs.check_run_dir(run_dir)
     payload = cfg.read_config_json(run_dir / "config.json")
     module = runs.resolve_experiment(payload["experiment"])
@@ -84,13 +95,11 @@ def load_run(
             which = "latest"
         if ckpt.latest_step(which) is None:
             raise RunError(f"{run_dir} has no checkpoint yet (train it first)")
-        state, _ = ckpt.restore({"params": params, "rest": rest}, which=which)
+        state, meta = ckpt.restore({"params": params, "rest": rest}, which=which)
     finally:
         ckpt.close()
     model = nnx.merge(graphdef, state["params"], state["rest"])
-    if dataset is None and load_data:
-        dataset = config.data.load()
-    return module, config, model, dataset
+    return module, config, model, {"which": which, "meta": meta}
 
 
 def evaluate_run(

@@ -62,8 +62,8 @@ from motionflows.bench.scoring import (
 from motionflows.bench.speed import (
     count_params,
     describe_machine,
-    draw_samples,
     make_sampler,
+    sample_in_chunks,
     time_sampler,
 )
 from motionflows.windows import complete_windows
@@ -88,7 +88,6 @@ __all__ = [
     "count_params",
     "describe_machine",
     "diverged",
-    "draw_samples",
     "estimate_training",
     "find_run",
     "fit_seconds",
@@ -98,6 +97,7 @@ __all__ = [
     "merge_splits",
     "motion_metrics",
     "natural_diversity_of",
+    "sample_in_chunks",
     "obtain_run",
     "parse_data_spec",
     "parse_models",
@@ -120,4 +120,14 @@ def __getattr__(name: str):
         from motionflows import cli_bench
 
         return getattr(cli_bench, name)
+    if name == "draw_samples":  # renamed: motionflows.run.draw_samples is the other sampler
+        import warnings
+
+        warnings.warn(
+            "motionflows.bench.draw_samples is deprecated, use bench.sample_in_chunks (same "
+            "contract)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return sample_in_chunks
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

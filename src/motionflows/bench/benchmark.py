@@ -41,8 +41,8 @@ from motionflows.bench.scoring import (
 from motionflows.bench.speed import (
     count_params,
     describe_machine,
-    draw_samples,
     make_sampler,
+    sample_in_chunks,
     time_sampler,
 )
 from motionflows.config import DataConfig, to_dict
@@ -155,9 +155,9 @@ def _samples(loaded: _Loaded, sampler, motion_idx, sizes: dict, key) -> tuple[np
 
     st = loaded.dataset.standardizer
     _, ctrl = standardized(st, loaded.dataset.test, motion_idx)
-    samples = draw_samples(sampler, loaded.model, ctrl, jax.random.fold_in(key, 20))
+    samples = sample_in_chunks(sampler, loaded.model, ctrl, jax.random.fold_in(key, 20))
     one = np.repeat(ctrl[:1], EVAL_CHUNK, axis=0)
-    div = draw_samples(sampler, loaded.model, one, jax.random.fold_in(key, 21))
+    div = sample_in_chunks(sampler, loaded.model, one, jax.random.fold_in(key, 21))
     return (
         np.asarray(st.denormalize_pose(samples), np.float32),
         np.asarray(st.denormalize_pose(div), np.float32)[: sizes["diversity"]],

@@ -118,8 +118,10 @@ def time_sampler(sampler, model, control: np.ndarray, batch: int, key, repeats: 
     return {"frames_per_s": frames / best, "seconds": best, "compile_s": max(first - best, 0.0)}
 
 
-def draw_samples(sampler, model, control: np.ndarray, key) -> np.ndarray:
-    """Samples (standardised) for every control window, in padded chunks of EVAL_CHUNK."""
+def sample_in_chunks(sampler, model, control: np.ndarray, key) -> np.ndarray:
+    """Samples (standardised) for every control window (N, T, 3) -> (N, T, D), in padded
+    chunks of EVAL_CHUNK (one compiled batch shape); chunk b draws with ``fold_in(key, b)``.
+    (``motionflows.run.draw_samples`` is the other sampler: one control in data units.)"""
     import jax
 
     out = []

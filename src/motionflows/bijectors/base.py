@@ -40,6 +40,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
+from motionflows.deprecation import renamed
+
 Array = jax.Array
 
 __all__ = [
@@ -348,7 +350,7 @@ def _as_key(rngs: Any, key: Any = None) -> Array:
     if isinstance(rngs, nnx.Rngs):
         return rngs.params()
     if rngs is None:
-        raise ValueError("Scan(factory, num_steps, rngs=...) needs rngs (nnx.Rngs or a jax key)")
+        raise ValueError("Scan(factory, K, rngs=...) needs rngs (nnx.Rngs or a jax key)")
     return rngs
 
 
@@ -401,15 +403,18 @@ class Scan(Bijector):
 
     Ways to build it:
 
-    * ``Scan(factory, num_steps, rngs=rngs)``: ``factory(rngs: nnx.Rngs) -> Bijector``
+    * ``Scan(factory, K, rngs=rngs)``: ``factory(rngs: nnx.Rngs) -> Bijector``
       builds one step; it is called once per key of ``jax.random.split(key, K)`` (as
       ``factory(nnx.Rngs(k))``) and the K results are stacked: the same random draws as
       ``nnx.vmap`` over those keys, at a fraction of the eager compile cost. The steps
       must share their structure (classes, sizes, static attributes) and differ only in
       array values; the factory must not keep ``rngs`` inside the step (no dropout).
-    * ``Scan(stacked, num_steps)``: an existing module whose every array has a leading axis
-      of size ``num_steps`` (e.g. built with ``nnx.vmap``).
+    * ``Scan(stacked)`` or ``Scan(stacked, K)``: an existing module whose every array has a
+      leading axis of size K (e.g. built with ``nnx.vmap``).
     * ``Scan([step_0, ..., step_{K-1}])``: stacks equally structured step modules.
+
+    ``K`` is the number of steps, the name the models use for flow steps; ``num_steps=`` is
+    its deprecated old keyword (and ``num_steps`` a read-only alias of the attribute ``K``).
 
     Attribute ``steps`` holds the stacked step module. Frame steps (``forward_step`` /
     ``inverse_step``) scan over the K steps the same way; the carry is the K steps' carries
@@ -422,40 +427,42 @@ class Scan(Bijector):
     def __init__(
         self,
         steps: Callable[[nnx.Rngs], Bijector] | nnx.Module | Sequence[nnx.Module],
-        num_steps: int | None = None,
+        K: int | None = None,
         *,
         rngs: nnx.Rngs | Array | None = None,
         key: Array | None = None,
+        num_steps: int | None = None,
     ):
+        K = renamed(
+            "Scan", old="num_steps", new="K", old_value=num_steps, new_value=K, default=None
+        )
         if isinstance(steps, (list, tuple)):
             if not steps:
                 raise ValueError("Scan needs at least one step")
-            if num_steps is not None and num_steps != len(steps):
-                raise ValueError(f"Scan got {len(steps)} steps but num_steps={num_steps}")
-            num_steps = len(steps)
+            if K is not None and K != len(steps):
+                raise ValueError(f"Scan got {len(steps)} steps but K={K}")
+            K = len(steps)
             stacked = _stack(list(steps))
         elif isinstance(steps, nnx.Module):
             stacked = steps
             leaves = jax.tree.leaves(stacked)
             if not leaves:
-                raise ValueError("Scan(stacked, num_steps): the module holds no arrays")
+                raise ValueError("Scan(stacked, K): the module holds no arrays")
             sizes = {leaf.shape[0] if leaf.ndim else None for leaf in leaves}
             if len(sizes) != 1 or None in sizes:
                 raise ValueError(
-                    "Scan(stacked, num_steps): every array of the stacked module needs the "
+                    "Scan(stacked, K): every array of the stacked module needs the "
                     f"same leading (step) axis; found leading sizes {sorted(map(str, sizes))}"
                 )
             (size,) = sizes
-            if num_steps is None:
-                num_steps = size
-            if size != num_steps:
-                raise ValueError(
-                    f"Scan(stacked, num_steps={num_steps}): the stacked arrays have {size} steps"
-                )
+            if K is None:
+                K = size
+            if size != K:
+                raise ValueError(f"Scan(stacked, K={K}): the stacked arrays have {size} steps")
         elif callable(steps):
-            if num_steps is None or int(num_steps) < 1:
-                raise ValueError(f"Scan(factory, num_steps) needs num_steps >= 1, got {num_steps}")
-            keys = jax.random.split(_as_key(rngs, key), int(num_steps))
+            if K is None or int(K) < 1:
+                raise ValueError(f"Scan(factory, K) needs K >= 1, got {K}")
+            keys = jax.random.split(_as_key(rngs, key), int(K))
             # Same values as nnx.vmap(lambda k: factory(nnx.Rngs(k)))(keys), but built one
             # step at a time and stacked: eagerly, the second and later steps reuse the
             # compiled primitives of the first, which makes construction several times
@@ -463,23 +470,28 @@ class Scan(Bijector):
             stacked = _stack([steps(nnx.Rngs(k)) for k in keys])
         else:
             raise ValueError(
-                "Scan(steps, num_steps) expects a factory rngs -> Bijector, a stacked module "
+                "Scan(steps, K) expects a factory rngs -> Bijector, a stacked module "
                 f"or a list of step modules, got {type(steps).__name__}"
             )
         self.steps = stacked
-        self.num_steps = int(num_steps)
+        self.K = int(K)
+
+    @property
+    def num_steps(self) -> int:
+        """The old name of :attr:`K` (read-only)."""
+        return self.K
 
     # -- access to single steps
 
     def step(self, k: int) -> Bijector:
-        """A copy of step ``k`` (0 <= k < num_steps) as an ordinary, unstacked module."""
-        if not -self.num_steps <= k < self.num_steps:
-            raise IndexError(f"Scan has {self.num_steps} steps, asked for step {k}")
+        """A copy of step ``k`` (0 <= k < K) as an ordinary, unstacked module."""
+        if not -self.K <= k < self.K:
+            raise IndexError(f"Scan has {self.K} steps, asked for step {k}")
         return jax.tree.map(lambda a: a[k], self.steps)
 
     def unrolled(self) -> Chain:
         """The equivalent ``Chain([step_0, ..., step_{K-1}])`` (copies of the parameters)."""
-        return Chain([self.step(k) for k in range(self.num_steps)])
+        return Chain([self.step(k) for k in range(self.K)])
 
     # -- maps
 
@@ -521,7 +533,7 @@ class Scan(Bijector):
 
     def _run_eagerly(self, h, context, *, forward: bool):
         """Init mode: run the steps one by one in Python and write them back (stacked)."""
-        steps = [self.step(k) for k in range(self.num_steps)]
+        steps = [self.step(k) for k in range(self.K)]
         total = None
         for step in steps if forward else reversed(steps):
             run = step.forward_and_log_det if forward else step.inverse_and_log_det

@@ -106,14 +106,10 @@ def read_bvh(path: str | os.PathLike) -> BVH:
     return parse_bvh(text, path=str(p))
 
 
-def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
-    """Parse BVH text into a :class:`BVH`; raise ``MotionDataError`` on any problem."""
-    lines = text.splitlines()
-    if not any(line.strip() for line in lines):
-        raise _err("the file is empty; expected a BVH file starting with HIERARCHY", path, 1)
-
-    # ---- HIERARCHY -------------------------------------------------------------------
-    tokens: list[tuple[str, int]] = []  # (token, 1-based line) of the hierarchy part
+def _hierarchy_tokens(lines: list[str], path: str) -> tuple[list[tuple[str, int]], int]:
+    """Split the lines before ``MOTION`` into (token, 1-based line) pairs (braces are tokens
+    of their own); return them with the 0-based index of the ``MOTION`` line."""
+    tokens: list[tuple[str, int]] = []
     motion_line = None
     for i, line in enumerate(lines):
         stripped = line.strip()
@@ -131,141 +127,172 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
             path,
             len(lines),
         )
+    return tokens, motion_line
 
-    names: list[str] = []
-    parents: list[int] = []
-    offsets: list[np.ndarray] = []
-    channels: list[tuple[str, ...]] = []
-    end_sites: list[tuple[int, np.ndarray]] = []
-    pos = 1
-    n_tok = len(tokens)
 
-    def take(expected: str | None = None) -> tuple[str, int]:
-        nonlocal pos
-        if pos >= n_tok:
-            last = tokens[-1][1] if tokens else 1
+class _JointTree:
+    """Recursive-descent parser of the hierarchy tokens (after ``HIERARCHY``).
+
+    Fills, in file order: ``names``, ``parents`` (-1 for the root), ``offsets`` ((3,) per
+    joint), ``channels`` (a tuple of names per joint) and ``end_sites`` ((parent, (3,))).
+    Use :meth:`root`, then ``joint(-1, False)``, then :meth:`check_complete`.
+    """
+
+    def __init__(self, tokens: list[tuple[str, int]], path: str):
+        self.tokens = tokens
+        self.path = path
+        self.pos = 1  # tokens[0] is HIERARCHY
+        self.names: list[str] = []
+        self.parents: list[int] = []
+        self.offsets: list[np.ndarray] = []
+        self.channels: list[tuple[str, ...]] = []
+        self.end_sites: list[tuple[int, np.ndarray]] = []
+
+    def take(self, expected: str | None = None) -> tuple[str, int]:
+        """Consume the next (token, line); raise if none is left or it is not ``expected``."""
+        if self.pos >= len(self.tokens):
+            last = self.tokens[-1][1] if self.tokens else 1
             want = f" (expected {expected!r})" if expected else ""
-            raise _err(f"hierarchy ends unexpectedly{want}", path, last)
-        tok, ln = tokens[pos]
-        pos += 1
+            raise _err(f"hierarchy ends unexpectedly{want}", self.path, last)
+        tok, ln = self.tokens[self.pos]
+        self.pos += 1
         if expected is not None and tok.upper() != expected.upper():
-            raise _err(f"expected {expected!r} but found {tok!r}", path, ln)
+            raise _err(f"expected {expected!r} but found {tok!r}", self.path, ln)
         return tok, ln
 
-    def number(ln_hint: int) -> float:
-        tok, ln = take()
+    def number(self) -> float:
+        """Consume one finite offset value, at most ``MAX_LENGTH_VALUE`` in size."""
+        tok, ln = self.take()
         try:
             value = float(tok)
         except ValueError:
-            raise _err(f"expected a number but found {tok!r}", path, ln) from None
+            raise _err(f"expected a number but found {tok!r}", self.path, ln) from None
         if not math.isfinite(value):
-            raise _err(f"non-finite value {tok!r} in the hierarchy", path, ln)
+            raise _err(f"non-finite value {tok!r} in the hierarchy", self.path, ln)
         if abs(value) > MAX_LENGTH_VALUE:
             raise _err(
                 f"offset {tok} is beyond the limit of {MAX_LENGTH_VALUE:g} file units; "
                 "check the file's units",
-                path,
+                self.path,
                 ln,
             )
         return value
 
-    def parse_offset() -> np.ndarray:
-        _, ln = take("OFFSET")
-        return np.array([number(ln), number(ln), number(ln)], dtype=np.float64)
+    def offset(self) -> np.ndarray:
+        """Consume ``OFFSET x y z`` into a (3,) float64 array."""
+        self.take("OFFSET")
+        return np.array([self.number(), self.number(), self.number()], dtype=np.float64)
 
-    def parse_joint(parent: int, is_end: bool) -> None:
-        take("{")
-        offset = parse_offset()
+    def channel_list(self) -> tuple[str, ...]:
+        """Consume an optional ``CHANNELS n name...`` (0 <= n <= 6 distinct valid names)."""
+        tok = self.tokens[self.pos][0] if self.pos < len(self.tokens) else ""
+        if tok.upper() != "CHANNELS":
+            return ()
+        self.take()
+        count_tok, cln = self.take()
+        try:
+            count = int(count_tok)
+        except ValueError:
+            raise _err(f"CHANNELS count {count_tok!r} is not an integer", self.path, cln) from None
+        if count < 0 or count > 6:
+            raise _err(f"CHANNELS count {count} must be between 0 and 6", self.path, cln)
+        got = []
+        for _ in range(count):
+            ctok, cl = self.take()
+            if ctok not in VALID_CHANNELS:
+                raise _err(
+                    f"unknown channel name {ctok!r}; valid: {', '.join(VALID_CHANNELS)}",
+                    self.path,
+                    cl,
+                )
+            got.append(ctok)
+        if len(set(got)) != len(got):
+            raise _err(f"repeated channel in {' '.join(got)}", self.path, cln)
+        return tuple(got)
+
+    def root(self) -> None:
+        """Consume ``ROOT name`` and record the root joint (its block follows)."""
+        tok, ln = self.take()
+        if tok.upper() != "ROOT":
+            raise _err(f"expected ROOT after HIERARCHY but found {tok!r}", self.path, ln)
+        root_name, _ = self.take()
+        self.names.append(root_name)
+        self.parents.append(-1)
+
+    def joint(self, parent: int, is_end: bool) -> None:
+        """Consume one ``{ ... }`` block: an End Site of ``parent``, or else the joint whose
+        name was just recorded, with its offset, channels and child blocks."""
+        self.take("{")
+        offset = self.offset()
         if is_end:
-            end_sites.append((parent, offset))
-            take("}")
+            self.end_sites.append((parent, offset))
+            self.take("}")
             return
-        index = len(names) - 1  # the caller appended this joint's name
-        offsets.append(offset)
-        tok, ln = tokens[pos] if pos < n_tok else ("", 0)
-        chans: tuple[str, ...] = ()
-        if tok.upper() == "CHANNELS":
-            take()
-            count_tok, cln = take()
-            try:
-                count = int(count_tok)
-            except ValueError:
-                raise _err(f"CHANNELS count {count_tok!r} is not an integer", path, cln) from None
-            if count < 0 or count > 6:
-                raise _err(f"CHANNELS count {count} must be between 0 and 6", path, cln)
-            got = []
-            for _ in range(count):
-                ctok, cl = take()
-                if ctok not in VALID_CHANNELS:
-                    raise _err(
-                        f"unknown channel name {ctok!r}; valid: {', '.join(VALID_CHANNELS)}",
-                        path,
-                        cl,
-                    )
-                got.append(ctok)
-            if len(set(got)) != len(got):
-                raise _err(f"repeated channel in {' '.join(got)}", path, cln)
-            chans = tuple(got)
-        channels.append(chans)
+        index = len(self.names) - 1  # the caller recorded this joint's name
+        self.offsets.append(offset)
+        self.channels.append(self.channel_list())
         while True:
-            tok, ln = take()
+            tok, ln = self.take()
             key = tok.upper()
             if key == "}":
                 return
             if key == "JOINT":
-                name, _ = take()
-                names.append(name)
-                parents.append(index)
-                parse_joint(index, False)
+                name, _ = self.take()
+                self.names.append(name)
+                self.parents.append(index)
+                self.joint(index, False)
             elif key == "END":
-                take("Site")
-                parse_joint(index, True)
+                self.take("Site")
+                self.joint(index, True)
             else:
-                raise _err(f"unexpected {tok!r} inside joint {names[index]!r}", path, ln)
+                raise _err(f"unexpected {tok!r} inside joint {self.names[index]!r}", self.path, ln)
 
-    tok, ln = take()
-    if tok.upper() != "ROOT":
-        raise _err(f"expected ROOT after HIERARCHY but found {tok!r}", path, ln)
-    root_name, _ = take()
-    names.append(root_name)
-    parents.append(-1)
-    parse_joint(-1, False)
-    if pos < n_tok:
-        tok, ln = tokens[pos]
-        raise _err(
-            f"unexpected {tok!r} after the root joint (only one ROOT is supported)", path, ln
-        )
-    if len(set(names)) != len(names):
-        seen: set[str] = set()
-        dup = next(n for n in names if n in seen or seen.add(n))
-        line = [ln for k, (tok, ln) in enumerate(tokens) if tok == dup and k > 0][-1]
-        raise _err(
-            f"joint name {dup!r} is used by more than one joint; rename one of them", path, line
-        )
+    def check_complete(self) -> None:
+        """Raise on tokens after the root block or on a joint name used twice."""
+        if self.pos < len(self.tokens):
+            tok, ln = self.tokens[self.pos]
+            raise _err(
+                f"unexpected {tok!r} after the root joint (only one ROOT is supported)",
+                self.path,
+                ln,
+            )
+        names = self.names
+        if len(set(names)) != len(names):
+            seen: set[str] = set()
+            dup = next(n for n in names if n in seen or seen.add(n))
+            line = [ln for k, (tok, ln) in enumerate(self.tokens) if tok == dup and k > 0][-1]
+            raise _err(
+                f"joint name {dup!r} is used by more than one joint; rename one of them",
+                self.path,
+                line,
+            )
 
-    # ---- MOTION ----------------------------------------------------------------------
-    i = motion_line + 1
 
-    def header(label: str) -> tuple[str, int]:
-        nonlocal i
-        while i < len(lines) and not lines[i].strip():
-            i += 1
-        if i >= len(lines):
-            raise _err(f"missing '{label}:' line in MOTION", path, len(lines))
-        line = lines[i].strip()
-        if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "") + ":"):
-            raise _err(f"expected '{label}:' but found {line[:40]!r}", path, i + 1)
+def _header_value(lines: list[str], i: int, label: str, path: str) -> tuple[str, int]:
+    """The text after ``label:`` on the first non-blank line from index ``i`` on, and that
+    line's 1-based number (which is also the index of the line after it)."""
+    while i < len(lines) and not lines[i].strip():
         i += 1
-        return line.split(":", 1)[1].strip(), i
+    if i >= len(lines):
+        raise _err(f"missing '{label}:' line in MOTION", path, len(lines))
+    line = lines[i].strip()
+    if not line.lower().replace(" ", "").startswith(label.lower().replace(" ", "") + ":"):
+        raise _err(f"expected '{label}:' but found {line[:40]!r}", path, i + 1)
+    return line.split(":", 1)[1].strip(), i + 1
 
-    frames_txt, frames_ln = header("Frames")
+
+def _motion_header(lines: list[str], motion_line: int, path: str) -> tuple[int, float, int]:
+    """Parse ``Frames: F`` and ``Frame Time: dt`` after the MOTION line (0-based index
+    ``motion_line``): (F >= 1, dt in seconds within the accepted range, index of the line
+    after the header)."""
+    frames_txt, frames_ln = _header_value(lines, motion_line + 1, "Frames", path)
     try:
         n_frames = int(frames_txt)
     except ValueError:
         raise _err(f"Frames count {frames_txt!r} is not an integer", path, frames_ln) from None
     if n_frames < 1:
         raise _err(f"Frames is {n_frames}; a motion needs at least one frame", path, frames_ln)
-    ft_txt, ft_ln = header("Frame Time")
+    ft_txt, ft_ln = _header_value(lines, frames_ln, "Frame Time", path)
     try:
         frame_time = float(ft_txt)
     except ValueError:
@@ -280,11 +307,17 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
             path,
             ft_ln,
         )
+    return n_frames, frame_time, ft_ln
 
-    n_chan = sum(len(c) for c in channels)
+
+def _frame_lines(
+    lines: list[str], start: int, n_frames: int, path: str
+) -> tuple[list[str], list[int]]:
+    """The non-blank lines from index ``start`` on and their 1-based numbers; raise unless
+    there are exactly ``n_frames`` of them."""
     data_lines = []
     line_numbers = []
-    for j in range(i, len(lines)):
+    for j in range(start, len(lines)):
         if lines[j].strip():
             data_lines.append(lines[j])
             line_numbers.append(j + 1)
@@ -302,6 +335,14 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
             path,
             line_numbers[n_frames],
         )
+    return data_lines, line_numbers
+
+
+def _frame_values(
+    data_lines: list[str], line_numbers: list[int], n_chan: int, path: str
+) -> np.ndarray:
+    """(F, C) float64 values of the F frame lines; raise on a line without exactly
+    ``n_chan`` values or on a non-numeric or non-finite value."""
     split = [ln.split() for ln in data_lines]
     counts = np.fromiter((len(s) for s in split), dtype=np.int64, count=len(split))
     bad = np.flatnonzero(counts != n_chan)
@@ -324,11 +365,23 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
                         f"non-numeric value {v!r} in frame {k}", path, line_numbers[k]
                     ) from None
         raise  # pragma: no cover
-    motion = motion.reshape(n_frames, n_chan)
+    motion = motion.reshape(len(split), n_chan)
     finite = np.isfinite(motion)
     if not finite.all():
         k = int(np.flatnonzero(~finite.all(axis=1))[0])
         raise _err(f"non-finite value in frame {k}", path, line_numbers[k])
+    return motion
+
+
+def _check_channel_limits(
+    motion: np.ndarray,
+    names: list[str],
+    channels: list[tuple[str, ...]],
+    line_numbers: list[int],
+    path: str,
+) -> None:
+    """Raise on the first value of (F, C) ``motion`` beyond ``MAX_ROTATION_DEG`` (rotation
+    channels) or ``MAX_LENGTH_VALUE`` (position channels), naming joint, channel and frame."""
     flat = [(j, ch) for j, chans in enumerate(channels) for ch in chans]
     for limit, kind, unit in (
         (MAX_ROTATION_DEG, _ROT, "degrees"),
@@ -348,14 +401,32 @@ def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
                 line_numbers[k],
             )
 
-    starts = np.cumsum([0] + [len(c) for c in channels])[:-1]
+
+def parse_bvh(text: str, *, path: str = "<string>") -> BVH:
+    """Parse BVH text into a :class:`BVH`; raise ``MotionDataError`` on any problem."""
+    lines = text.splitlines()
+    if not any(line.strip() for line in lines):
+        raise _err("the file is empty; expected a BVH file starting with HIERARCHY", path, 1)
+    tokens, motion_line = _hierarchy_tokens(lines, path)
+    tree = _JointTree(tokens, path)
+    tree.root()
+    tree.joint(-1, False)
+    tree.check_complete()
+
+    n_frames, frame_time, start = _motion_header(lines, motion_line, path)
+    data_lines, line_numbers = _frame_lines(lines, start, n_frames, path)
+    n_chan = sum(len(c) for c in tree.channels)
+    motion = _frame_values(data_lines, line_numbers, n_chan, path)
+    _check_channel_limits(motion, tree.names, tree.channels, line_numbers, path)
+
+    starts = np.cumsum([0] + [len(c) for c in tree.channels])[:-1]
     return BVH(
-        names=tuple(names),
-        parents=tuple(parents),
-        offsets=np.stack(offsets),
-        channels=tuple(channels),
+        names=tuple(tree.names),
+        parents=tuple(tree.parents),
+        offsets=np.stack(tree.offsets),
+        channels=tuple(tree.channels),
         channel_start=tuple(int(s) for s in starts),
-        end_sites=tuple(end_sites),
+        end_sites=tuple(tree.end_sites),
         motion=motion,
         frame_time=frame_time,
         path=path,

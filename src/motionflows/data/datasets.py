@@ -26,11 +26,12 @@ generator arguments, the frame rate, the skeleton mapping and the pipeline versi
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import json
 import os
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +46,7 @@ from motionflows.data.pipeline import (
     batches_per_epoch,
     make_windows,
 )
-from motionflows.data.skeleton import get_skeleton
+from motionflows.data.skeleton import SkeletonMapping, get_skeleton
 from motionflows.errors import MotionDataError
 
 SOURCES = ("synthetic", "bandai", "bvh")
@@ -429,6 +430,99 @@ class MotionDataset:
             i += 1
 
 
+def _bvh_meta(name: str, manifest: dict[str, dict]) -> dict:
+    """Metadata of a take of the ``bvh`` source from its row in the folder's manifest."""
+    row = manifest.get(name + ".bvh", {})
+    return {
+        "source": "bvh",
+        "performer": row.get("performer_proxy") or row.get("performer") or "unknown",
+        "content": row.get("content", ""),
+        "style": row.get("style", ""),
+    }
+
+
+def _synthetic_source(
+    n_clips: int, seconds: float, seed: int, fps: float
+) -> tuple[dict, Callable[[], list[Clip]]]:
+    """The cache key and the builder of the ``synthetic`` source's clips."""
+    from motionflows.data import synthetic
+
+    key = {"source": "synthetic", "n_clips": int(n_clips), "seconds": float(seconds),
+           "seed": int(seed), "fps": fps, "v": _code_version()}  # fmt: skip
+    return key, lambda: synthetic.generate(n_clips, seconds, seed, fps=fps)
+
+
+def _bandai_source(path) -> tuple[list[Path], SkeletonMapping, Callable[[str], dict], dict]:
+    """The ``bandai`` source: its folders (``path`` or the defaults), the Bandai skeleton
+    mapping, the metadata function of a take name and the manifest rows to check the files
+    against (the packaged manifest updated by each folder's ``manifest.csv``)."""
+    folders = [Path(path)] if path else default_bandai_dirs()
+    if not folders or not all(f.is_dir() for f in folders):
+        env = os.environ.get("MOTIONFLOWS_BANDAI_DIR")
+        where = (
+            str(folders[0])
+            if folders
+            else (f"$MOTIONFLOWS_BANDAI_DIR={env}" if env else str(BANDAI_DEFAULT))
+        )
+        raise MotionDataError(f"Bandai data folder not found: {where}; " + _DOWNLOAD_HINT)
+    mapping = get_skeleton("bandai")
+    manifest = {r["file"]: r for r in bandai_manifest()}
+    for f in folders:
+        manifest.update(_folder_manifest(f))
+    return folders, mapping, functools.partial(_bandai_meta, manifest=manifest), manifest
+
+
+def _bvh_source(path, skeleton) -> tuple[list[Path], SkeletonMapping, Callable[[str], dict], dict]:
+    """The ``bvh`` source: its one folder ``path``, the skeleton mapping, the metadata
+    function of a take name (from the folder's ``manifest.csv``) and no checksums."""
+    if path is None:
+        raise ValueError("load_dataset('bvh') needs path=<folder of .bvh files>")
+    folder = Path(path)
+    if folder.is_file():
+        raise MotionDataError(
+            "is a file, but the bvh source reads a folder of .bvh files (at least 3 takes "
+            "for the train/val/test split); put the file in a folder and pass bvh:DIR "
+            "(to look at one file, use `motionflows render FILE`)",
+            path=str(folder),
+        )
+    if not folder.is_dir():
+        raise MotionDataError("BVH folder not found", path=str(folder))
+    mapping = get_skeleton(skeleton)
+    local = _folder_manifest(folder)
+    return [folder], mapping, functools.partial(_bvh_meta, manifest=local), {}
+
+
+def _with_contents(
+    files: list[Path], contents, meta_fn: Callable[[str], dict], folder: Path
+) -> list[Path]:
+    """The files whose metadata ``content`` is in ``contents`` (a name or several; None
+    or empty keeps all); raise if none is left."""
+    if not contents:
+        return files
+    wanted = {contents} if isinstance(contents, str) else set(contents)
+    files = [f for f in files if meta_fn(f.stem).get("content") in wanted]
+    if not files:
+        raise MotionDataError(f"no files with content in {sorted(wanted)}", path=str(folder))
+    return files
+
+
+def _bvh_key(
+    name: str,
+    files: list[Path],
+    folders: list[Path],
+    fps: float,
+    mapping: SkeletonMapping,
+    meta_fn: Callable[[str], dict],
+) -> dict:
+    """The cache key of BVH clips: the files (name, size, mtime), the folder(s), the frame
+    rate, the skeleton mapping, the code version and a hash of the takes' metadata."""
+    return {"source": name, "files": _file_key(files),
+            "folder": [str(d.resolve()) for d in folders] if len(folders) > 1
+            else str(folders[0].resolve()),
+            "fps": fps, "skeleton": mapping.to_dict(), "v": _code_version(),
+            "meta": _hash([meta_fn(f.stem) for f in files])}  # fmt: skip
+
+
 def load_clips(
     name: str,
     *,
@@ -448,81 +542,127 @@ def load_clips(
         raise ValueError(f"unknown dataset {name!r}; valid: {', '.join(SOURCES)}")
     fps = float(fps)
     if name == "synthetic":
-        from motionflows.data import synthetic
-
-        key = {"source": name, "n_clips": int(n_clips), "seconds": float(seconds),
-               "seed": int(seed), "fps": fps, "v": _code_version()}  # fmt: skip
-        clips, cfile = _cached(
-            key,
-            lambda: synthetic.generate(n_clips, seconds, seed, fps=fps),
-            cache=cache,
-            directory=cache_dir,
-        )
+        key, build = _synthetic_source(n_clips, seconds, seed, fps)
+        clips, cfile = _cached(key, build, cache=cache, directory=cache_dir)
         return clips, {"cache_file": cfile}
     if name == "bandai":
-        folders = [Path(path)] if path else default_bandai_dirs()
-        if not folders or not all(f.is_dir() for f in folders):
-            env = os.environ.get("MOTIONFLOWS_BANDAI_DIR")
-            where = (
-                str(folders[0])
-                if folders
-                else (f"$MOTIONFLOWS_BANDAI_DIR={env}" if env else str(BANDAI_DEFAULT))
-            )
-            raise MotionDataError(f"Bandai data folder not found: {where}; " + _DOWNLOAD_HINT)
-        folder = folders[0]
-        mapping = get_skeleton("bandai")
-        manifest = {r["file"]: r for r in bandai_manifest()}
-        for f in folders:
-            manifest.update(_folder_manifest(f))
-
-        def meta_fn(stem):
-            return _bandai_meta(stem, manifest)
+        folders, mapping, meta_fn, checksums = _bandai_source(path)
     else:
-        if path is None:
-            raise ValueError("load_dataset('bvh') needs path=<folder of .bvh files>")
-        folder = Path(path)
-        if folder.is_file():
-            raise MotionDataError(
-                "is a file, but the bvh source reads a folder of .bvh files (at least 3 takes "
-                "for the train/val/test split); put the file in a folder and pass bvh:DIR "
-                "(to look at one file, use `motionflows render FILE`)",
-                path=str(folder),
-            )
-        if not folder.is_dir():
-            raise MotionDataError("BVH folder not found", path=str(folder))
-        folders = [folder]
-        mapping = get_skeleton(skeleton)
-        local = _folder_manifest(folder)
-
-        def meta_fn(stem):
-            row = local.get(stem + ".bvh", {})
-            return {
-                "source": "bvh",
-                "performer": row.get("performer_proxy") or row.get("performer") or "unknown",
-                "content": row.get("content", ""),
-                "style": row.get("style", ""),
-            }
-
+        folders, mapping, meta_fn, checksums = _bvh_source(path, skeleton)
+    # _bvh_files and _cached warn with stacklevel=3 (the caller of this function): call them here
     files = sorted((f for d in folders for f in _bvh_files(d)), key=lambda f: f.name)
-    if contents:
-        wanted = {contents} if isinstance(contents, str) else set(contents)
-        files = [f for f in files if meta_fn(f.stem).get("content") in wanted]
-        if not files:
-            raise MotionDataError(f"no files with content in {sorted(wanted)}", path=str(folder))
-    key = {"source": name, "files": _file_key(files),
-           "folder": [str(d.resolve()) for d in folders] if len(folders) > 1
-           else str(folder.resolve()),
-           "fps": fps, "skeleton": mapping.to_dict(), "v": _code_version(),
-           "meta": _hash([meta_fn(f.stem) for f in files])}  # fmt: skip
+    files = _with_contents(files, contents, meta_fn, folders[0])
+    key = _bvh_key(name, files, folders, fps, mapping, meta_fn)
     clips, cfile = _cached(
         key,
-        lambda: _bvh_clips(
-            files, fps, mapping, name, meta_fn, manifest if name == "bandai" else {}
-        ),
+        lambda: _bvh_clips(files, fps, mapping, name, meta_fn, checksums),
         cache=cache,
         directory=cache_dir,
     )
     return clips, {"cache_file": cfile, "path": os.pathsep.join(str(d) for d in folders)}
+
+
+def _check_options(name: str, window: int, hop: int, val_frac: float, test_frac: float) -> None:
+    """Raise ``ValueError`` on an unknown source, a bad window/hop or bad split fractions."""
+    if name not in SOURCES:
+        raise ValueError(f"unknown dataset {name!r}; valid: {', '.join(SOURCES)}")
+    if int(window) < 2 or int(hop) < 1:
+        raise ValueError(f"window must be >= 2 and hop >= 1, got {window}, {hop}")
+    if not (0 <= val_frac < 1 and 0 <= test_frac < 1 and val_frac + test_frac < 1):
+        raise ValueError("val_frac and test_frac must be in [0, 1) with a sum below 1")
+
+
+def _assign_takes(
+    clips: list[Clip],
+    source_info: dict,
+    split_by: str,
+    val_frac: float,
+    test_frac: float,
+    val_performers=None,
+    test_performers=None,
+) -> dict[str, list[Clip]]:
+    """The clips of each split, sorted by name (see :func:`_split_names`); raise on
+    duplicate take names or an empty val or test split."""
+    names = [c.name for c in clips]
+    if len(set(names)) != len(names):
+        raise MotionDataError("take names are not unique; rename the duplicate files")
+    assignment = _split_names(clips, split_by, val_frac, test_frac, val_performers, test_performers)
+    empty = [s for s in ("val", "test") if not assignment[s]]
+    if empty:
+        where = f" in {source_info['path']}" if source_info.get("path") else ""
+        raise MotionDataError(
+            f"the {' and '.join(empty)} split(s) got no take: found {len(clips)} take(s){where}, "
+            "and a split by take needs at least 3 takes per content group (one each for "
+            "train, val and test); add takes"
+        )
+    by_name = {c.name: c for c in clips}
+    return {s: [by_name[n] for n in sorted(assignment[s])] for s in SPLITS}
+
+
+def _split_windows(
+    split_clips: dict[str, list[Clip]],
+    window: int,
+    hop: int,
+    mirror: bool,
+    reverse: bool,
+    short: str,
+    min_frames: int | None,
+) -> tuple[dict[str, WindowSet], dict[str, dict]]:
+    """The windows and window statistics of each split (training takes augmented first);
+    raise if the training split has no window."""
+    splits, stats = {}, {}
+    for s in SPLITS:
+        cs = split_clips[s]
+        if s == "train":
+            cs = augment_clips(cs, mirror=mirror, reverse=reverse)
+        splits[s], stats[s] = make_windows(
+            cs, int(window), int(hop), short=short, min_frames=min_frames
+        )
+    if len(splits["train"]) == 0:
+        raise MotionDataError(
+            f"no training windows: the takes are shorter than window={window} frames; use a "
+            "smaller window or short='pad'"
+        )
+    return splits, stats
+
+
+def _warn_dropped(dropped: list[str], window: int, short: str, min_frames: int | None) -> None:
+    """Warn, at the caller of :func:`load_dataset`, about clips too short to be used."""
+    if not dropped:
+        return
+    if short == "pad":
+        floor = max(2, int(window) // 4) if min_frames is None else int(min_frames)
+        why = f"shorter than min_frames={floor} (short='pad' pads takes of at least that)"
+        fix = "pass a smaller min_frames or window to keep them"
+    else:
+        why = f"shorter than the window {window} (short='drop')"
+        fix = "use short='pad' or a smaller window to keep them"
+    warnings.warn(
+        f"{len(dropped)} clip(s) (augmented copies included) were dropped as {why}: "
+        f"{dropped[:5]}; {fix}",
+        stacklevel=3,
+    )
+
+
+def _split_info(
+    split_clips: dict[str, list[Clip]],
+    splits: dict[str, WindowSet],
+    stats: dict[str, dict],
+    dropped: list[str],
+) -> dict:
+    """Per-split counts for ``MotionDataset.info``: takes, windows, frames, padded windows,
+    the dropped takes and the performers."""
+    return {
+        "takes": {s: len(split_clips[s]) for s in SPLITS},
+        "windows": {s: len(splits[s]) for s in SPLITS},
+        "frames_total": {s: stats[s]["frames_total"] for s in SPLITS},
+        "frames_used": {s: stats[s]["frames_used"] for s in SPLITS},
+        "padded_windows": {s: stats[s]["padded_windows"] for s in SPLITS},
+        "dropped_takes": dropped,
+        "performers": {
+            s: sorted({str(c.meta.get("performer")) for c in split_clips[s]}) for s in SPLITS
+        },
+    }
 
 
 def load_dataset(
@@ -557,12 +697,7 @@ def load_dataset(
     """
     if extra:
         warnings.warn(f"load_dataset ignores unknown option(s) {sorted(extra)}", stacklevel=2)
-    if name not in SOURCES:
-        raise ValueError(f"unknown dataset {name!r}; valid: {', '.join(SOURCES)}")
-    if int(window) < 2 or int(hop) < 1:
-        raise ValueError(f"window must be >= 2 and hop >= 1, got {window}, {hop}")
-    if not (0 <= val_frac < 1 and 0 <= test_frac < 1 and val_frac + test_frac < 1):
-        raise ValueError("val_frac and test_frac must be in [0, 1) with a sum below 1")
+    _check_options(name, window, hop, val_frac, test_frac)
     clips, source_info = load_clips(
         name,
         path=path,
@@ -575,50 +710,14 @@ def load_dataset(
         cache=cache,
         cache_dir=cache_dir,
     )
-    names = [c.name for c in clips]
-    if len(set(names)) != len(names):
-        raise MotionDataError("take names are not unique; rename the duplicate files")
-    assignment = _split_names(clips, split_by, val_frac, test_frac, val_performers, test_performers)
-    empty = [s for s in ("val", "test") if not assignment[s]]
-    if empty:
-        where = f" in {source_info['path']}" if source_info.get("path") else ""
-        raise MotionDataError(
-            f"the {' and '.join(empty)} split(s) got no take: found {len(clips)} take(s){where}, "
-            "and a split by take needs at least 3 takes per content group (one each for "
-            "train, val and test); add takes"
-        )
-    by_name = {c.name: c for c in clips}
-    split_clips = {s: [by_name[n] for n in sorted(assignment[s])] for s in SPLITS}
-    splits, stats = {}, {}
-    for s in SPLITS:
-        cs = split_clips[s]
-        if s == "train":
-            cs = augment_clips(cs, mirror=mirror, reverse=reverse)
-        splits[s], stats[s] = make_windows(
-            cs, int(window), int(hop), short=short, min_frames=min_frames
-        )
-    if len(splits["train"]) == 0:
-        raise MotionDataError(
-            f"no training windows: the takes are shorter than window={window} frames; use a "
-            "smaller window or short='pad'"
-        )
-    dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
-    if dropped:
-        if short == "pad":
-            floor = max(2, int(window) // 4) if min_frames is None else int(min_frames)
-            why = f"shorter than min_frames={floor} (short='pad' pads takes of at least that)"
-            fix = "pass a smaller min_frames or window to keep them"
-        else:
-            why = f"shorter than the window {window} (short='drop')"
-            fix = "use short='pad' or a smaller window to keep them"
-        warnings.warn(
-            f"{len(dropped)} clip(s) (augmented copies included) were dropped as {why}: "
-            f"{dropped[:5]}; {fix}",
-            stacklevel=2,
-        )
-    standardizer = Standardizer.fit(
-        splits["train"].pose, splits["train"].control, valid=splits["train"].valid
+    split_clips = _assign_takes(
+        clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
+    splits, stats = _split_windows(split_clips, window, hop, mirror, reverse, short, min_frames)
+    dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
+    _warn_dropped(dropped, window, short, min_frames)
+    train = splits["train"]
+    standardizer = Standardizer.fit(train.pose, train.control, valid=train.valid)
     info = {
         "source": name,
         "fps": float(fps),
@@ -626,15 +725,7 @@ def load_dataset(
         "hop": int(hop),
         "split_by": split_by,
         "augment": {"mirror": bool(mirror), "reverse": bool(reverse)},
-        "takes": {s: len(split_clips[s]) for s in SPLITS},
-        "windows": {s: len(splits[s]) for s in SPLITS},
-        "frames_total": {s: stats[s]["frames_total"] for s in SPLITS},
-        "frames_used": {s: stats[s]["frames_used"] for s in SPLITS},
-        "padded_windows": {s: stats[s]["padded_windows"] for s in SPLITS},
-        "dropped_takes": dropped,
-        "performers": {
-            s: sorted({str(c.meta.get("performer")) for c in split_clips[s]}) for s in SPLITS
-        },
+        **_split_info(split_clips, splits, stats, dropped),
         "seconds": sum(len(c) for c in clips) / float(fps),
         **source_info,
     }

@@ -78,6 +78,112 @@ def _safe_name(name: str) -> bool:
     )
 
 
+def _manifest_rows(manifest: str | os.PathLike | None) -> list[dict]:
+    """The manifest's rows with ``bytes`` as an int; raise on an unsafe file name or a row
+    without a valid size."""
+    rows = bandai_manifest(manifest)
+    unsafe = [r.get("file") for r in rows if not _safe_name(r.get("file") or "")]
+    if unsafe:
+        raise MotionDataError(
+            f"the manifest lists file name(s) {unsafe[:3]} that would be written outside "
+            "the destination folder; use the packaged manifest",
+            path=str(manifest or MANIFEST),
+        )
+    for r in rows:
+        try:
+            r["bytes"] = int(r["bytes"])
+        except (KeyError, TypeError, ValueError):
+            raise MotionDataError(
+                f"manifest entry {r.get('file')!r} has no valid 'bytes' size",
+                path=str(manifest or MANIFEST),
+            ) from None
+    return rows
+
+
+def _select(rows: list[dict], files: list[str] | None, contents: list[str] | None) -> list[dict]:
+    """The rows named in ``files`` (".bvh" optional; ValueError on unknown names) and of
+    the given ``contents``; None keeps all."""
+    if files is not None:
+        wanted = {f if f.endswith(".bvh") else f + ".bvh" for f in files}
+        unknown = sorted(wanted - {r["file"] for r in rows})
+        if unknown:
+            raise ValueError(f"not in the manifest: {unknown[:5]}")
+        rows = [r for r in rows if r["file"] in wanted]
+    if contents is not None:
+        rows = [r for r in rows if r["content"] in set(contents)]
+    return rows
+
+
+def _try_urls(
+    row: dict, base_url: str, timeout: float, size: int
+) -> tuple[bytes | None, str, bool, int]:
+    """One try of the row's URLs (``source_path``, then the flat ``file``): (data, problem,
+    unreachable, 404 count). ``data`` is None unless a body of at most ``size`` bytes
+    matched the checksum; ``unreachable`` says the last URL tried could not be reached."""
+    problem, not_found = "", 0
+    for url in (base_url + row["source_path"], base_url + row["file"]):
+        try:
+            data = _fetch(url, timeout, size)
+        except urllib.error.HTTPError as err:
+            problem = f"HTTP {err.code} for {url}"
+            if err.code == 404:
+                not_found += 1
+                continue
+            return None, problem, False, not_found
+        except _TooLarge as err:
+            problem = str(err)
+            continue
+        except (urllib.error.URLError, OSError, TimeoutError) as err:
+            reason = getattr(err, "reason", err)
+            return None, f"cannot reach {url}: {reason}", True, not_found
+        if git_blob_sha1(data) != row["git_blob_sha1"]:
+            problem = f"checksum mismatch for {url} (expected git blob {row['git_blob_sha1']})"
+            continue
+        return data, problem, False, not_found
+    return None, problem, False, not_found
+
+
+def _fetch_row(
+    row: dict, base_url: str, timeout: float, retries: int, size: int
+) -> tuple[bytes | None, str, bool]:
+    """The verified bytes of one manifest row, or None after ``retries`` further tries
+    (sleeping 0.5, 1, 2, 2.. s between them; no retry once every URL gave 404), with the
+    last problem and whether the server was unreachable."""
+    data, problem, unreachable = None, "", False
+    for attempt in range(retries + 1):
+        data, problem, unreachable, not_found = _try_urls(row, base_url, timeout, size)
+        if data is not None or not_found == 2:
+            break
+        if attempt < retries:
+            time.sleep(min(0.5 * 2.0**attempt, 2.0))
+    return data, problem, unreachable
+
+
+def _save(target: Path, data: bytes) -> None:
+    """Write ``data`` to ``target`` atomically (through a ``.part`` file)."""
+    tmp = target.with_suffix(target.suffix + ".part")
+    tmp.write_bytes(data)
+    os.replace(tmp, target)
+
+
+def _finish(out: Path, total: int, failures: list[str], summary: dict, progress) -> None:
+    """Copy the manifest beside the files, then raise on ``failures`` or, with
+    ``progress=True``, print the summary line with the attribution."""
+    shutil.copyfile(MANIFEST, out / "manifest.csv")
+    if failures:
+        raise MotionDataError(
+            f"{len(failures)} of {total} file(s) failed: {failures[:3]}; check the network "
+            "or --url and run the same command again (valid files are kept and skipped)",
+            path=str(out),
+        )
+    if progress is True:
+        print(
+            f"{summary['downloaded']} downloaded, {summary['skipped']} already present in "
+            f"{out}. Data: {ATTRIBUTION}.",
+            file=sys.stderr,
+        )
+
+
 def download_bandai(
     dest: str | os.PathLike,
     *,
@@ -110,30 +216,7 @@ def download_bandai(
     report = _print_progress if progress is True else (progress or (lambda event: None))
     if not base_url.endswith("/"):
         base_url += "/"
-    rows = bandai_manifest(manifest)
-    unsafe = [r.get("file") for r in rows if not _safe_name(r.get("file") or "")]
-    if unsafe:
-        raise MotionDataError(
-            f"the manifest lists file name(s) {unsafe[:3]} that would be written outside "
-            "the destination folder; use the packaged manifest",
-            path=str(manifest or MANIFEST),
-        )
-    for r in rows:
-        try:
-            r["bytes"] = int(r["bytes"])
-        except (KeyError, TypeError, ValueError):
-            raise MotionDataError(
-                f"manifest entry {r.get('file')!r} has no valid 'bytes' size",
-                path=str(manifest or MANIFEST),
-            ) from None
-    if files is not None:
-        wanted = {f if f.endswith(".bvh") else f + ".bvh" for f in files}
-        unknown = sorted(wanted - {r["file"] for r in rows})
-        if unknown:
-            raise ValueError(f"not in the manifest: {unknown[:5]}")
-        rows = [r for r in rows if r["file"] in wanted]
-    if contents is not None:
-        rows = [r for r in rows if r["content"] in set(contents)]
+    rows = _select(_manifest_rows(manifest), files, contents)
     out = Path(dest)
     if out.exists() and not out.is_dir():
         raise MotionDataError("is a file, not a folder; give --dest a folder path", path=str(out))
@@ -148,40 +231,7 @@ def download_bandai(
             summary["skipped"] += 1
             report(dict(event, status="present, checksum ok (skipped)"))
             continue
-        data, problem, unreachable = None, "", False
-        for attempt in range(retries + 1):
-            not_found = 0  # a 404 from every URL will not change on a retry
-            for url in (base_url + row["source_path"], base_url + row["file"]):
-                unreachable = False
-                try:
-                    data = _fetch(url, timeout, size)
-                except urllib.error.HTTPError as err:
-                    problem = f"HTTP {err.code} for {url}"
-                    data = None
-                    if err.code == 404:
-                        not_found += 1
-                        continue
-                    break
-                except _TooLarge as err:
-                    problem = str(err)
-                    data = None
-                    continue
-                except (urllib.error.URLError, OSError, TimeoutError) as err:
-                    reason = getattr(err, "reason", err)
-                    problem = f"cannot reach {url}: {reason}"
-                    data, unreachable = None, True
-                    break
-                if git_blob_sha1(data) != row["git_blob_sha1"]:
-                    problem = (
-                        f"checksum mismatch for {url} (expected git blob {row['git_blob_sha1']})"
-                    )
-                    data = None
-                    continue
-                break
-            if data is not None or not_found == 2:
-                break
-            if attempt < retries:
-                time.sleep(min(0.5 * 2.0**attempt, 2.0))
+        data, problem, unreachable = _fetch_row(row, base_url, timeout, retries, size)
         if data is None and unreachable:
             raise MotionDataError(
                 f"{problem} (after {retries + 1} tries, {timeout:g} s timeout each); check the "
@@ -193,23 +243,9 @@ def download_bandai(
             failures.append(f"{row['file']}: {problem}")
             report(dict(event, status=f"FAILED ({problem})"))
             continue
-        tmp = target.with_suffix(target.suffix + ".part")
-        tmp.write_bytes(data)
-        os.replace(tmp, target)
+        _save(target, data)
         summary["downloaded"] += 1
         summary["bytes"] += len(data)
         report(dict(event, status="downloaded, checksum ok"))
-    shutil.copyfile(MANIFEST, out / "manifest.csv")
-    if failures:
-        raise MotionDataError(
-            f"{len(failures)} of {len(rows)} file(s) failed: {failures[:3]}; check the network "
-            "or --url and run the same command again (valid files are kept and skipped)",
-            path=str(out),
-        )
-    if progress is True:
-        print(
-            f"{summary['downloaded']} downloaded, {summary['skipped']} already present in "
-            f"{out}. Data: {ATTRIBUTION}.",
-            file=sys.stderr,
-        )
+    _finish(out, len(rows), failures, summary, progress)
     return summary

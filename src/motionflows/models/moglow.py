@@ -54,7 +54,6 @@ uses the same rule with ``state.t``, so passing the same ``key`` at every step r
 
 from __future__ import annotations
 
-import math
 from typing import Any, NamedTuple
 
 import jax
@@ -76,8 +75,7 @@ from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, StudentT
 from motionflows.models.validation import check_input, check_temperature
-from motionflows.nets.lstm import LSTM
-from motionflows.nets.precision import matmul
+from motionflows.nets.moglow_conditioners import FeedForwardConditioner, LSTMConditioner
 
 Array = jax.Array
 
@@ -92,105 +90,6 @@ __all__ = [
     "import_stylegestures",
     "load_stylegestures_checkpoint",
 ]
-
-
-# ----------------------------------------------------------------------------- conditioners
-
-
-class LSTMConditioner(nnx.Module):
-    """The official MoGlow coupling net: ``Linear(LSTM([x_a, cond]))`` with a zero head.
-
-    ``__call__(x_a (..., T, na), context (..., T, cond)) -> h (..., T, out)``: the LSTM runs
-    over time from a zero state (causal). ``step(x_a_t, cond_t, carry) -> (h_t, carry)``
-    runs one frame with an explicit carry (``initial_carry(batch_shape)``).
-    Head: ``w_out`` (hidden, out), ``b_out`` (out,), both zero at initialisation.
-    """
-
-    def __init__(
-        self,
-        in_features: int,
-        context_features: int,
-        out_features: int,
-        *,
-        hidden: int = 512,
-        num_layers: int = 2,
-        compute_dtype: str | None = None,
-        rngs: nnx.Rngs,
-    ):
-        self.in_features = int(in_features)
-        self.context_features = int(context_features)
-        self.compute_dtype = compute_dtype
-        self.lstm = LSTM(
-            in_features + context_features,
-            hidden,
-            num_layers,
-            rngs=rngs,
-            compute_dtype=compute_dtype,
-        )
-        self.w_out = nnx.Param(jnp.zeros((hidden, out_features), jnp.float32))
-        self.b_out = nnx.Param(jnp.zeros((out_features,), jnp.float32))
-
-    def initial_carry(self, batch_shape: tuple[int, ...] = ()):
-        return self.lstm.initial_carry(batch_shape)
-
-    def _head(self, y: Array) -> Array:
-        return matmul(y, self.w_out[...], self.compute_dtype) + self.b_out[...]
-
-    def __call__(self, x_a: Array, context: Array) -> Array:
-        y, _ = self.lstm(x_a, context=context)  # = on [x_a, context], no d/d context
-        return self._head(y)
-
-    def step(self, x_a: Array, context: Array, carry):
-        y, carry = self.lstm.step(jnp.concatenate([x_a, context], axis=-1), carry)
-        return self._head(y), carry
-
-
-class FeedForwardConditioner(nnx.Module):
-    """The Markov ablation: a per-frame MLP on [x_a, cond_t] (ReLU, zero head), no state.
-
-    Same interface as :class:`LSTMConditioner`; its carry is the empty tuple.
-    """
-
-    def __init__(
-        self,
-        in_features: int,
-        context_features: int,
-        out_features: int,
-        *,
-        hidden: int = 512,
-        num_layers: int = 2,
-        compute_dtype: str | None = None,
-        rngs: nnx.Rngs,
-    ):
-        self.compute_dtype = compute_dtype
-        sizes = [in_features + context_features] + [hidden] * num_layers
-        ws, bs = [], []
-        for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
-            bound = 1.0 / math.sqrt(fan_in)
-            ws.append(
-                nnx.Param(
-                    jax.random.uniform(
-                        rngs.params(), (fan_in, fan_out), minval=-bound, maxval=bound
-                    )
-                )
-            )
-            bs.append(nnx.Param(jnp.zeros((fan_out,), jnp.float32)))
-        self.ws = nnx.List(ws)
-        self.bs = nnx.List(bs)
-        self.w_out = nnx.Param(jnp.zeros((sizes[-1], out_features), jnp.float32))
-        self.b_out = nnx.Param(jnp.zeros((out_features,), jnp.float32))
-
-    def initial_carry(self, batch_shape: tuple[int, ...] = ()):
-        return ()
-
-    def __call__(self, x_a: Array, context: Array) -> Array:
-        h = jnp.concatenate([x_a, context], axis=-1)
-        for w, b in zip(self.ws, self.bs, strict=True):
-            h = jax.nn.relu(matmul(h, w[...], self.compute_dtype) + b[...])
-        return matmul(h, self.w_out[...], self.compute_dtype) + self.b_out[...]
-
-    def step(self, x_a: Array, context: Array, carry):
-        return self(x_a, context), carry
 
 
 # ----------------------------------------------------------------------------- conditions

@@ -32,6 +32,98 @@ def _np(state_dict: dict, name: str) -> np.ndarray:
     return np.asarray(value, np.float32)
 
 
+def _layer_count(state_dict: dict, prefix: str) -> int:
+    """The number of official flow layers: consecutive ``<prefix><k>.`` entries from 0."""
+    layer_ids = sorted(
+        {
+            int(name[len(prefix) :].split(".")[0])
+            for name in state_dict
+            if name.startswith(prefix) and name[len(prefix) :].split(".")[0].isdigit()
+        }
+    )
+    if not layer_ids or layer_ids != list(range(len(layer_ids))):
+        raise ValueError(
+            f"import_stylegestures: found no consecutive '{prefix}<k>.' entries (got layers "
+            f"{layer_ids}); pass the checkpoint's 'graph' state dict"
+        )
+    return len(layer_ids)
+
+
+def _lstm_sizes(
+    state_dict: dict, prefix: str, pose_dim: int, control_dim: int, tau: int
+) -> tuple[int, int]:
+    """(hidden, num_layers) of the official LSTM, its input width checked against the sizes."""
+    first = f"{prefix}0.f."
+    hidden = _np(state_dict, first + "lstm.weight_hh_l0").shape[1]
+    num_layers = len([n for n in state_dict if n.startswith(first + "lstm.weight_hh_l")])
+    na, nb = coupling_sizes(pose_dim)
+    cond_dim = tau * pose_dim + (tau + 1) * control_dim
+    w_ih0 = _np(state_dict, first + "lstm.weight_ih_l0")
+    if w_ih0.shape != (4 * hidden, na + cond_dim):
+        raise ValueError(
+            f"import_stylegestures: {first}lstm.weight_ih_l0 has shape {w_ih0.shape}, expected "
+            f"(4*{hidden}, {na} + {cond_dim}) for pose_dim={pose_dim}, control_dim="
+            f"{control_dim}, tau={tau}; pass the values the checkpoint was trained with"
+        )
+    return hidden, num_layers
+
+
+def _step_arrays(state_dict: dict, n: str, pose_dim: int, num_layers: int) -> dict:
+    """One official layer's arrays (names starting with ``n``) in this model's layout."""
+    lower_mask = np.tril(np.ones((pose_dim, pose_dim), np.float32), -1)
+    upper_mask = lower_mask.T
+
+    def g(name):
+        return _np(state_dict, n + name)
+
+    arrays = {
+        "bias": g("actnorm.bias").reshape(pose_dim),
+        "logs": g("actnorm.logs").reshape(pose_dim),
+        "P": g("invconv.p"),
+        "sign_s": g("invconv.sign_s").reshape(pose_dim),
+        "lower": g("invconv.l") * lower_mask,
+        "upper": g("invconv.u") * upper_mask,
+        "log_s": g("invconv.log_s").reshape(pose_dim),
+        "w_out": g("f.linear.weight").T,
+        "b_out": g("f.linear.bias"),
+    }
+    for layer in range(num_layers):
+        arrays[f"w_ih{layer}"] = g(f"f.lstm.weight_ih_l{layer}").T
+        arrays[f"w_hh{layer}"] = g(f"f.lstm.weight_hh_l{layer}").T
+        arrays[f"b_ih{layer}"] = g(f"f.lstm.bias_ih_l{layer}")
+        arrays[f"b_hh{layer}"] = g(f"f.lstm.bias_hh_l{layer}")
+    return arrays
+
+
+def _put(var, value) -> None:
+    """Write ``value`` into the variable ``var``, refusing a shape mismatch."""
+    if tuple(var.shape) != value.shape:
+        raise ValueError(
+            f"import_stylegestures: shape mismatch {value.shape} vs expected {var.shape}"
+        )
+    var[...] = jnp.asarray(value)
+
+
+def _load_steps(model: MoGlow, stacked: dict) -> None:
+    """Write the stacked per-step arrays into the model's scanned flow steps."""
+    coupling, linear, actnorm = model.flow.steps.bijectors
+    net = coupling.conditioner
+    _put(actnorm.bias, stacked["bias"])
+    _put(actnorm.logs, stacked["logs"])
+    _put(linear.P, stacked["P"])
+    _put(linear.sign_s, stacked["sign_s"])
+    _put(linear.lower, stacked["lower"])
+    _put(linear.upper, stacked["upper"])
+    _put(linear.log_s, stacked["log_s"])
+    _put(net.w_out, stacked["w_out"])
+    _put(net.b_out, stacked["b_out"])
+    for layer, mod in enumerate(net.lstm.layers):
+        _put(mod.w_ih, stacked[f"w_ih{layer}"])
+        _put(mod.w_hh, stacked[f"w_hh{layer}"])
+        _put(mod.b_ih, stacked[f"b_ih{layer}"])
+        _put(mod.b_hh, stacked[f"b_hh{layer}"])
+
+
 def import_stylegestures(
     state_dict: dict,
     *,
@@ -59,31 +151,8 @@ def import_stylegestures(
     """
     if not isinstance(state_dict, dict):
         raise ValueError("import_stylegestures expects a dict of parameter name -> array")
-    layer_ids = sorted(
-        {
-            int(name[len(prefix) :].split(".")[0])
-            for name in state_dict
-            if name.startswith(prefix) and name[len(prefix) :].split(".")[0].isdigit()
-        }
-    )
-    if not layer_ids or layer_ids != list(range(len(layer_ids))):
-        raise ValueError(
-            f"import_stylegestures: found no consecutive '{prefix}<k>.' entries (got layers "
-            f"{layer_ids}); pass the checkpoint's 'graph' state dict"
-        )
-    k_steps = len(layer_ids)
-    first = f"{prefix}0.f."
-    hidden = _np(state_dict, first + "lstm.weight_hh_l0").shape[1]
-    num_layers = len([n for n in state_dict if n.startswith(first + "lstm.weight_hh_l")])
-    na, nb = coupling_sizes(pose_dim)
-    cond_dim = tau * pose_dim + (tau + 1) * control_dim
-    w_ih0 = _np(state_dict, first + "lstm.weight_ih_l0")
-    if w_ih0.shape != (4 * hidden, na + cond_dim):
-        raise ValueError(
-            f"import_stylegestures: {first}lstm.weight_ih_l0 has shape {w_ih0.shape}, expected "
-            f"(4*{hidden}, {na} + {cond_dim}) for pose_dim={pose_dim}, control_dim="
-            f"{control_dim}, tau={tau}; pass the values the checkpoint was trained with"
-        )
+    k_steps = _layer_count(state_dict, prefix)
+    hidden, num_layers = _lstm_sizes(state_dict, prefix, pose_dim, control_dim, tau)
     from motionflows.models.moglow import MoGlow  # moglow re-exports this module
 
     model = MoGlow(
@@ -97,58 +166,12 @@ def import_stylegestures(
         eps=eps,
         rngs=nnx.Rngs(0),
     )
-    lower_mask = np.tril(np.ones((pose_dim, pose_dim), np.float32), -1)
-    upper_mask = lower_mask.T
-    per_step = []
-    for k in range(k_steps):
-        n = f"{prefix}{k_steps - 1 - k}."
-
-        def g(name, n=n):
-            return _np(state_dict, n + name)
-
-        arrays = {
-            "bias": g("actnorm.bias").reshape(pose_dim),
-            "logs": g("actnorm.logs").reshape(pose_dim),
-            "P": g("invconv.p"),
-            "sign_s": g("invconv.sign_s").reshape(pose_dim),
-            "lower": g("invconv.l") * lower_mask,
-            "upper": g("invconv.u") * upper_mask,
-            "log_s": g("invconv.log_s").reshape(pose_dim),
-            "w_out": g("f.linear.weight").T,
-            "b_out": g("f.linear.bias"),
-        }
-        for layer in range(num_layers):
-            arrays[f"w_ih{layer}"] = g(f"f.lstm.weight_ih_l{layer}").T
-            arrays[f"w_hh{layer}"] = g(f"f.lstm.weight_hh_l{layer}").T
-            arrays[f"b_ih{layer}"] = g(f"f.lstm.bias_ih_l{layer}")
-            arrays[f"b_hh{layer}"] = g(f"f.lstm.bias_hh_l{layer}")
-        per_step.append(arrays)
+    per_step = [
+        _step_arrays(state_dict, f"{prefix}{k_steps - 1 - k}.", pose_dim, num_layers)
+        for k in range(k_steps)
+    ]
     stacked = {name: np.stack([s[name] for s in per_step]) for name in per_step[0]}
-    steps = model.flow.steps
-    coupling, linear, actnorm = steps.bijectors
-    net = coupling.conditioner
-
-    def put(var, value):
-        if tuple(var.shape) != value.shape:
-            raise ValueError(
-                f"import_stylegestures: shape mismatch {value.shape} vs expected {var.shape}"
-            )
-        var[...] = jnp.asarray(value)
-
-    put(actnorm.bias, stacked["bias"])
-    put(actnorm.logs, stacked["logs"])
-    put(linear.P, stacked["P"])
-    put(linear.sign_s, stacked["sign_s"])
-    put(linear.lower, stacked["lower"])
-    put(linear.upper, stacked["upper"])
-    put(linear.log_s, stacked["log_s"])
-    put(net.w_out, stacked["w_out"])
-    put(net.b_out, stacked["b_out"])
-    for layer, mod in enumerate(net.lstm.layers):
-        put(mod.w_ih, stacked[f"w_ih{layer}"])
-        put(mod.w_hh, stacked[f"w_hh{layer}"])
-        put(mod.b_ih, stacked[f"b_ih{layer}"])
-        put(mod.b_hh, stacked[f"b_hh{layer}"])
+    _load_steps(model, stacked)
     return model
 
 

@@ -21,7 +21,7 @@ import socket
 import sys
 from collections import deque
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,6 +36,9 @@ from motionflows.play.protocol import (
     BadMessage,
     parse_message,
 )
+
+if TYPE_CHECKING:
+    from starlette.websockets import WebSocket
 
 STATIC = Path(__file__).resolve().parent / "static"
 OUTBOX_FRAMES = 8
@@ -100,32 +103,86 @@ def hello_message(session: _Session) -> dict[str, Any]:
     }
 
 
-def create_app(character: Character, *, info: dict | None = None):
-    """The Starlette app serving ``character`` (compiled already: see ``warm_up``)."""
-    check_installed()
-    from starlette.applications import Starlette
-    from starlette.responses import FileResponse, JSONResponse, Response
-    from starlette.routing import Mount, Route, WebSocketRoute
-    from starlette.staticfiles import StaticFiles
-    from starlette.websockets import WebSocket, WebSocketDisconnect
+class _Outbox:
+    """One socket's outgoing messages: the newest ``OUTBOX_FRAMES``, the dropped ones counted."""
 
-    session = _Session(character, dict(info or {}))
+    def __init__(self, ws: WebSocket):
+        self.ws = ws
+        self.loop = asyncio.get_running_loop()
+        self.messages: deque = deque(maxlen=OUTBOX_FRAMES)
+        self.wake = asyncio.Event()
+        self.dropped = 0
 
-    async def index(request):
+    def push(self, message: dict) -> None:  # on the event loop
+        """Queue ``message``, dropping (and counting) the oldest when the queue is full."""
+        if len(self.messages) == self.messages.maxlen:
+            self.dropped += 1
+        self.messages.append(message)
+        self.wake.set()
+
+    def emit(self, message: dict) -> None:  # on the engine thread
+        """Hand ``message`` to the event loop, which queues it (nothing once it is closing)."""
+        with contextlib.suppress(RuntimeError):  # the loop is closing
+            self.loop.call_soon_threadsafe(self.push, message)
+
+    async def send_loop(self) -> None:
+        """Send the queued messages as they come, each frame with the dropped count so far."""
+        while True:
+            await self.wake.wait()
+            self.wake.clear()
+            while self.messages:
+                message = self.messages.popleft()
+                if message["type"] == "frame":
+                    message["dropped"] = self.dropped
+                await self.ws.send_text(json.dumps(message))
+
+
+async def _receive_loop(ws: WebSocket, engine: Engine, outbox: _Outbox) -> None:
+    """Submit the page's messages to the engine until it disconnects; report rejected ones."""
+    while True:
+        message = await ws.receive()
+        if message["type"] == "websocket.disconnect":
+            break
+        raw = message.get("text")
+        try:
+            engine.submit(parse_message(raw if raw is not None else message.get("bytes")))
+        except BadMessage as err:
+            outbox.push({"type": "error", "message": f"message rejected: {err}"})
+        except Exception as err:  # noqa: BLE001 - a bad message never ends the stream
+            outbox.push({"type": "error", "message": f"message rejected ({err!r:.80})"})
+
+
+class _Routes:
+    """The app's endpoints over one session (Starlette takes bound methods as endpoints)."""
+
+    def __init__(self, session: _Session):
+        self.session = session
+
+    async def index(self, request):
+        """The page (``static/index.html``), never cached."""
+        from starlette.responses import FileResponse
+
         return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-store"})
 
-    async def status(request):
-        engine = session.engine
+    async def status(self, request):
+        """A small JSON health report: streaming or not, pages so far, frames, episode."""
+        from starlette.responses import JSONResponse
+
+        engine, character = self.session.engine, self.session.character
         return JSONResponse(
             {
                 "streaming": engine is not None and engine.running,
-                "pages": session.pages,
+                "pages": self.session.pages,
                 "frames": character.t,
                 "episode": character.episode,
             }
         )
 
-    async def record(request):
+    async def record(self, request):
+        """The motion since the last reset as an ``.npz`` download."""
+        from starlette.responses import Response
+
+        character = self.session.character
         buf = io.BytesIO()
         np.savez(buf, **character.recording(), temperature=np.float32(character.temperature))
         return Response(
@@ -134,60 +191,29 @@ def create_app(character: Character, *, info: dict | None = None):
             headers={"Content-Disposition": 'attachment; filename="motionflows-play.npz"'},
         )
 
-    async def socket_endpoint(ws: WebSocket):
+    async def socket(self, ws: WebSocket) -> None:
+        """The page's socket: ``busy`` if another page owns the character, else the stream."""
+        from starlette.websockets import WebSocketDisconnect
+
+        session = self.session
         await ws.accept()
         if session.engine is not None:
             await ws.send_text(json.dumps({"type": "busy", "message": BUSY_MESSAGE}))
             await ws.close(code=BUSY_CLOSE_CODE)
             return
-        loop = asyncio.get_running_loop()
-        outbox: deque = deque(maxlen=OUTBOX_FRAMES)
-        wake = asyncio.Event()
-        dropped = 0
-
-        def push(message: dict) -> None:  # on the event loop
-            nonlocal dropped
-            if len(outbox) == outbox.maxlen:
-                dropped += 1
-            outbox.append(message)
-            wake.set()
-
-        def emit(message: dict) -> None:  # on the engine thread
-            with contextlib.suppress(RuntimeError):  # the loop is closing
-                loop.call_soon_threadsafe(push, message)
-
-        async def send_loop() -> None:
-            while True:
-                await wake.wait()
-                wake.clear()
-                while outbox:
-                    message = outbox.popleft()
-                    if message["type"] == "frame":
-                        message["dropped"] = dropped
-                    await ws.send_text(json.dumps(message))
-
-        character.reset()
-        engine = session.engine = Engine(character, emit)
+        outbox = _Outbox(ws)
+        session.character.reset()
+        engine = session.engine = Engine(session.character, outbox.emit)
         session.pages += 1
         sender = None
         try:
             await ws.send_text(json.dumps(hello_message(session)))
             engine.start()
-            sender = asyncio.create_task(send_loop())
+            sender = asyncio.create_task(outbox.send_loop())
             # a send to a page that has gone ends the task; the receive loop then sees the
             # disconnect, so its exception is expected and only retrieved here
             sender.add_done_callback(lambda task: task.cancelled() or task.exception())
-            while True:
-                message = await ws.receive()
-                if message["type"] == "websocket.disconnect":
-                    break
-                raw = message.get("text")
-                try:
-                    engine.submit(parse_message(raw if raw is not None else message.get("bytes")))
-                except BadMessage as err:
-                    push({"type": "error", "message": f"message rejected: {err}"})
-                except Exception as err:  # noqa: BLE001 - a bad message never ends the stream
-                    push({"type": "error", "message": f"message rejected ({err!r:.80})"})
+            await _receive_loop(ws, engine, outbox)
         except WebSocketDisconnect:
             pass
         finally:
@@ -197,19 +223,29 @@ def create_app(character: Character, *, info: dict | None = None):
                 sender.cancel()
 
     @contextlib.asynccontextmanager
-    async def lifespan(app):
+    async def lifespan(self, app):
+        """Run the app; on shutdown stop the engine of a page still open (Ctrl-C)."""
         yield
-        if session.engine is not None:  # Ctrl-C with a page open
-            session.engine.stop()
+        if self.session.engine is not None:  # Ctrl-C with a page open
+            self.session.engine.stop()
 
+
+def create_app(character: Character, *, info: dict | None = None):
+    """The Starlette app serving ``character`` (compiled already: see ``warm_up``)."""
+    check_installed()
+    from starlette.applications import Starlette
+    from starlette.routing import Mount, Route, WebSocketRoute
+    from starlette.staticfiles import StaticFiles
+
+    endpoints = _Routes(_Session(character, dict(info or {})))
     routes = [
-        Route("/", index),
-        Route("/status", status),
-        Route("/record.npz", record),
-        WebSocketRoute("/ws", socket_endpoint),
+        Route("/", endpoints.index),
+        Route("/status", endpoints.status),
+        Route("/record.npz", endpoints.record),
+        WebSocketRoute("/ws", endpoints.socket),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
-    return Starlette(routes=routes, lifespan=lifespan)
+    return Starlette(routes=routes, lifespan=endpoints.lifespan)
 
 
 def bind(host: str, port: int) -> socket.socket:
