@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.config import DataConfig, Scope, TrainConfig
-from motionflows.models.vae_lstm import VAELSTM, l1_penalty
+from motionflows.models.vae_lstm import SAMPLERS, VAELSTM, l1_penalty
 from motionflows.models.validation import check_sample_args
 from motionflows.nets.vae import kernel_for_fps
 
@@ -56,6 +56,9 @@ class Config:
     elbo_samples: int = 1  # z draws averaged in the reported "elbo" (unbiased for any value)
     # bounds on the density of the sampler's model (Algorithm 1 + output noise), see SCOPES
     sampler_iwae_samples: tuple[int, ...] = (10,)
+    # "recurrent": the paper's Algorithm 1 (only z_1 is random); "prior": ancestral samples
+    # of the model the ELBO is trained on (a latent per pooled step); see VAELSTM
+    sampler: str = "recurrent"
 
     def __post_init__(self):
         if self.data.window % 4:
@@ -66,6 +69,8 @@ class Config:
         bad = [k for k in self.iwae_samples + self.sampler_iwae_samples if k not in ALLOWED_IWAE_K]
         if bad:
             raise ValueError(f"iwae_samples {bad} not allowed; choose from {ALLOWED_IWAE_K}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {SAMPLERS}, got {self.sampler!r}")
         if self.kernel is not None and (self.kernel < 1 or self.kernel % 2 == 0):
             raise ValueError(f"kernel must be a positive odd integer or None, got {self.kernel}")
 
@@ -110,7 +115,9 @@ PRESETS: dict[str, Config] = {
         iwae_samples=(1, 10, 100),
     ),
     # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md): the quick
-    # model trained 4x longer with a decaying learning rate.
+    # model trained 4x longer with a decaying learning rate, sampled from the model it
+    # trains (a latent per pooled step): Algorithm 1's samples barely vary (4 mm under one
+    # control on the unseen performer, 33 mm with "prior", natural 29 mm; docs/readme/vae_lstm.md).
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10),
         train=TrainConfig(
@@ -119,6 +126,7 @@ PRESETS: dict[str, Config] = {
             checkpoint_every=1000,
         ),
         iwae_samples=(1, 10),
+        sampler="prior",
     ),
     # Seconds: tests and the benchmark's smoke budget.
     "smoke": Config(
@@ -140,8 +148,9 @@ SCOPES: dict[str, Scope] = {
     },
     **{
         f"sampler_iwae_{k}": Scope(
-            f"IWAE bound (K={k}, proposal q(z_1|x)) on the density of the sampler's model: "
-            "Algorithm 1 (one z_1, recurrent canvas) plus the learned output noise",
+            f"IWAE bound (K={k}) on the density of the sampler's model plus the learned "
+            "output noise: Algorithm 1 (one z_1, recurrent canvas; proposal q(z_1|x)), or "
+            "with sampler='prior' the trained model itself (then equal to iwae_K)",
             bound=True,
         )
         for k in ALLOWED_IWAE_K
@@ -167,6 +176,7 @@ def build(config: Config, *, key: jax.Array) -> VAELSTM:
         l1_weight=config.l1_weight,
         elbo_samples=config.elbo_samples,
         sampler_iwae_samples=config.sampler_iwae_samples,
+        sampler=config.sampler,
         rngs=nnx.Rngs(key),
     )
 
@@ -220,9 +230,10 @@ def sample(
     seed_history: jax.Array | None = None,
     seed_pose: jax.Array | None = None,
 ) -> jax.Array:
-    """Algorithm 1 of the paper: standardised poses (B, T, 63) for the control (B, T, 3).
-    ``seed_history`` (B, S, 63), S a multiple of 4: z_1 from the posterior of those frames
-    (``seed_pose``: its deprecated old name)."""
+    """Standardised poses (B, T, 63) for the control (B, T, 3), by the config's ``sampler``
+    (default the paper's Algorithm 1; :meth:`VAELSTM.sample`). ``seed_history`` (B, S, 63),
+    S a multiple of 4: the first latents from the posterior of those frames (``seed_pose``:
+    its deprecated old name)."""
     control, seed_history = check_sample_args(
         control, temperature, seed_history, "vae_lstm.sample", seed_pose=seed_pose
     )

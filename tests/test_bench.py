@@ -200,6 +200,30 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     assert bench.find_run(root / "runs", prov["experiment"], other) is None
 
 
+def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, capsys):
+    root, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke")
+    config, prov = bench.bench_config("moglow", "smoke", data, None, ["history_noise=0.1"])
+    assert config.history_noise == 0.1 and prov["set"] == ["history_noise=0.1"]
+    plain, prov = bench.bench_config("linear_ar", "smoke", data, None, ["history_noise=0.1"])
+    assert prov["overrides_skipped"] == ["history_noise=0.1"] and "set" not in prov
+    again = bench.run_benchmark(
+        data="synthetic", models="linear_ar", budget="smoke", out=tmp_path / "out",
+        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
+        overrides=["train.seed=3"],
+    )  # fmt: skip
+    entry = again["models"]["linear_ar"]
+    assert not entry["reused"] and entry["config"]["train"]["seed"] == 3
+    assert entry["run_dir"] != first["models"]["linear_ar"]["run_dir"]
+    with pytest.raises(RunError, match="no config of linear_ar has this key"):
+        bench.check_overrides(["linear_ar"], "smoke", data, ["histroy_noise=0.1"])
+    with pytest.raises(RunError, match="same data"):
+        bench.bench_config("linear_ar", "smoke", data, None, ["data.window=8"])
+    args = ["--models", "linear_ar", "--budget", "smoke", "--out", str(tmp_path / "o2")]
+    assert bench.main([*args, "--set", "train.seed=x"]) == 2
+    assert "train.seed" in capsys.readouterr().err
+
+
 def test_configs_share_one_data_config():
     data = bench.parse_data_spec("synthetic", "smoke")
     seen = set()

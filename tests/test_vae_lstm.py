@@ -209,6 +209,46 @@ def test_test_time_recurrence_uses_only_z1():
         model.sample(jax.random.key(4), c, seed_history=jnp.ones((2, 6, POSE_DIM)))
 
 
+def test_prior_sampler_draws_the_trained_model_with_a_latent_per_pooled_step():
+    recurrent, prior = _tiny(), _tiny(sampler="prior")  # the same weights (same key)
+    _, c = _data(jax.random.key(0), 2, 32)
+    seed = jax.random.normal(jax.random.key(7), (2, 8, POSE_DIM))
+    key = jax.random.key(3)
+
+    @jax.jit
+    def run(recurrent, prior, c, seed):
+        h = prior.encode_control(c)
+        z = 0.5 * jax.random.normal(key, (2, 8, 8))
+        mu, log_std = prior.posterior(seed)
+        z_seeded = z.at[:, :2].set(mu + jnp.exp(log_std) * z[:, :2])
+        return dict(
+            sample=prior.sample(key, c, temperature=0.5),
+            ancestral=prior.decode(prior.canvas(z, h)),  # p(z) p(x | z, c), training canvas
+            seeded=prior.sample(key, c, temperature=0.5, seed_history=seed),
+            ancestral_seeded=prior.decode(prior.canvas(z_seeded, h)),
+            cold=prior.sample(key, c, temperature=0.0),
+            cold_recurrent=recurrent.sample(key, c, temperature=0.0),
+        )
+
+    r = run(recurrent, prior, c, seed)
+    np.testing.assert_allclose(r["sample"], r["ancestral"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(r["seeded"], r["ancestral_seeded"], rtol=1e-5, atol=1e-6)
+    # the two samplers are different models: at temperature 0 as well
+    assert not np.allclose(r["cold"], r["cold_recurrent"])
+    # the prior sampler's density is the trained model's: its sampler bound is the IWAE one
+    x = jax.random.normal(jax.random.key(8), (2, 32, POSE_DIM))
+    np.testing.assert_array_equal(
+        prior.sampler_log_weights(x, c, key, 3), prior.log_weights(x, c, key, 3)
+    )
+    assert not np.allclose(
+        recurrent.sampler_log_weights(x, c, key, 3), recurrent.log_weights(x, c, key, 3)
+    )
+    with pytest.raises(ValueError, match="sampler must be one of"):
+        _tiny(sampler="mean")
+    with pytest.raises(ValueError, match="sampler must be one of"):
+        E.Config(sampler="mean")
+
+
 def test_faithful_mode_sigma_floor_unit_variance_and_unpooling():
     model = _tiny(faithful=True, latent_dim=8, pose_features=16)
     # push every pre-activation of the inference network far negative

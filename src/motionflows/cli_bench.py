@@ -46,7 +46,16 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     )
     p.add_argument("--runs-dir", default="runs", help="where runs are found and trained")
     p.add_argument("--temperature", type=float, default=1.0, help="sampling temperature")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the scoring and sampling keys")
+    p.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config changes for every model whose config has the key (dotted or unique bare "
+        "names, as in `motionflows train --set`), e.g. train.seed=1 for a second training "
+        "seed; changed runs are trained, not reused; data.* keys are refused (use --data)",
+    )
     p.add_argument(
         "--performer-split",
         dest="performer_split",
@@ -70,7 +79,7 @@ def _estimate(args: argparse.Namespace, names: tuple[str, ...]) -> None:
     from motionflows.bench.benchmark import jsonable
     from motionflows.bench.estimate import estimate_training
 
-    est = estimate_training(args.data, names, args.budget)
+    est = estimate_training(args.data, names, args.budget, overrides=args.set)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     (Path(args.out) / "estimate.json").write_text(json.dumps(jsonable(est), indent=2))
     for name, e in est["models"].items():
@@ -89,6 +98,10 @@ def _command(args: argparse.Namespace, names: tuple[str, ...]) -> str:
     extra = f" --test-data {args.test_data}" if args.test_data else ""
     if args.temperature != 1.0:
         extra += f" --temperature {args.temperature:g}"
+    if args.seed:
+        extra += f" --seed {args.seed}"
+    if args.set:
+        extra += " --set " + " ".join(args.set)
     return command_line(args.data, names, args.budget, args.out, extra)
 
 
@@ -109,7 +122,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             data=args.data, models=names, budget=args.budget, out=args.out,
             runs_dir=args.runs_dir, temperature=args.temperature, seed=args.seed,
             performer_split=args.performer_split, retrain=args.retrain, gifs=args.gifs,
-            command=_command(args, names), test_data=args.test_data,
+            command=_command(args, names), test_data=args.test_data, overrides=args.set,
         )  # fmt: skip
     except (RunError, ValueError, MotionDataError) as err:
         print(f"motionflows bench: error: {err}", file=sys.stderr)

@@ -320,6 +320,14 @@ def _parse(text: str, kind: Any, key: str) -> Any:
         raise ValueError(f"--set {key}={text}: cannot read {text!r} as {kind}") from err
 
 
+def has_override_key(config: Any, item: str) -> bool:
+    """Whether the ``key`` of ``key=value`` names one field of ``config`` (dotted path or a
+    unique bare name), i.e. whether :func:`apply_overrides` can apply it."""
+    paths = _field_paths(type(config))
+    key = item.split("=", 1)[0].strip()
+    return key in paths or sum(p.rsplit(".", 1)[-1] == key for p in paths) == 1
+
+
 def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
     """Return ``config`` with ``key=value`` overrides applied (dotted or unique bare names)."""
     paths = _field_paths(type(config))

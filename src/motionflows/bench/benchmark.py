@@ -25,6 +25,7 @@ from motionflows.bench.budgets import (
     BUDGETS,
     EVAL_CHUNK,
     bench_config,
+    check_overrides,
     load_experiment,
     parse_data_spec,
     parse_models,
@@ -89,14 +90,14 @@ class _Loaded:
     chunk: int
 
 
-def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, dataset):
+def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, dataset, overrides):
     """Train or reuse the model's run, fill the provenance of ``entry``, load the model."""
     import jax
 
     from motionflows import training
 
     exp = load_experiment(name)
-    config, prov = bench_config(name, budget, data, exp)
+    config, prov = bench_config(name, budget, data, exp, overrides)
     entry.update(prov, config=to_dict(config))
     c0 = time.process_time()
     run_dir, reused, secs = obtain_run(
@@ -179,6 +180,7 @@ def bench_model(
     motion_idx: np.ndarray | None = None,
     likelihood_only: bool = False,
     dataset=None,
+    overrides: Sequence[str] = (),
 ) -> dict:
     """Everything the report holds about one model; ``entry["_samples"]`` (metres, not saved
     to JSON) keeps the motion samples for the GIFs."""
@@ -189,7 +191,7 @@ def bench_model(
     with _Section(entry, "error", strict, progress):
         loaded = _obtain(
             name, entry, data=data, budget=budget, sizes=sizes, runs_dir=runs_dir,
-            retrain=retrain, progress=progress, dataset=dataset,
+            retrain=retrain, progress=progress, dataset=dataset, overrides=overrides,
         )  # fmt: skip
         log(progress, f"{name}: likelihood on test and train windows")
         test, train = _likelihood(loaded, sizes, key)
@@ -399,6 +401,7 @@ def run_benchmark(
     command: str | None = None,
     progress=print,
     test_data: str | None = None,
+    overrides: Sequence[str] = (),
 ) -> dict:
     """Train (or reuse) every model on one data configuration, score, sample, time and report.
 
@@ -410,12 +413,14 @@ def run_benchmark(
     the first failure instead of recording it in the report. ``test_data`` (``bvh:DIR``,
     ``bandai:DIR``, a folder) replaces the test split: every table is computed on the
     complete windows of those takes (cut at the bench's fps, window and hop, standardised
-    with the training standardiser).
+    with the training standardiser). ``overrides``: ``key=value`` config changes (``--set``,
+    e.g. ``train.seed=1``) applied to every model whose config has the key.
     """
     wall0 = time.perf_counter()
     _check(budget, temperature)
     names = parse_models(models)
     data_cfg = parse_data_spec(data, budget)
+    check_overrides(names, budget, data_cfg, overrides)
     sizes = BUDGET_SIZES[budget]
     out, runs_dir = Path(out), Path(runs_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -440,7 +445,9 @@ def run_benchmark(
         results["ground_truth"] = {"motion": gt}
     results.setdefault("ground_truth", {"motion": None})
     results.update(motion_metrics=dict(MOTION_METRICS), motion_note=report.MOTION_NOTE)
-    options = dict(temperature=temperature, seed=seed, retrain=retrain, strict=strict)
+    options = dict(
+        temperature=temperature, seed=seed, retrain=retrain, strict=strict, overrides=overrides
+    )
     samples = {}
     for name in names:
         log(progress, f"== {name}")

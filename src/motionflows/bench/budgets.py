@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from motionflows.config import SMOKE_DATA, DataConfig
+from motionflows.config import SMOKE_DATA, DataConfig, apply_overrides, has_override_key
 from motionflows.errors import RunError
 
 BUDGETS: dict[str, str] = {"smoke": "smoke", "quick": "quick", "cpu": "cpu", "full": "paper"}
@@ -140,11 +140,28 @@ def load_experiment(model: str):
     return resolve_experiment(_lookup(model).experiment)
 
 
-def bench_config(model: str, budget: str, data: DataConfig, exp=None) -> tuple[Any, dict]:
+def check_overrides(names: Sequence[str], budget: str, data: DataConfig, overrides) -> None:
+    """RunError if one of the ``--set`` overrides names a field of none of the models (a
+    typo would otherwise change nothing); bad values raise through :func:`bench_config`."""
+    skipped = [set(bench_config(n, budget, data, None, overrides)[1]["overrides_skipped"])
+               for n in names]  # fmt: skip
+    unused = set(overrides).intersection(*skipped) if skipped else set()
+    if unused:
+        raise RunError(
+            f"--set {' '.join(sorted(unused))}: no config of {', '.join(names)} has this key "
+            "(the fields of each experiment's Config, as for `motionflows train --set`)"
+        )
+
+
+def bench_config(
+    model: str, budget: str, data: DataConfig, exp=None, overrides: Sequence[str] = ()
+) -> tuple[Any, dict]:
     """The exact config the bench trains for ``model`` at ``budget`` on ``data``.
 
     The experiment's preset of the budget (:data:`BUDGETS`) with the model's selecting
-    fields and the data section replaced by ``data`` (identical frames for every model).
+    fields and the data section replaced by ``data`` (identical frames for every model),
+    then the ``key=value`` ``overrides`` (``motionflows bench --set``) that name a field of
+    this model's config; the others are listed in ``provenance["overrides_skipped"]``.
     Returns (config, provenance dict).
     """
     if budget not in BUDGETS:
@@ -161,11 +178,21 @@ def bench_config(model: str, budget: str, data: DataConfig, exp=None) -> tuple[A
         config = dataclasses.replace(exp.PRESETS[preset], **entry.fields, data=data)
     except TypeError as err:
         raise RunError(f"{exp.__name__}.Config cannot select model {model!r}: {err}") from None
+    for item in overrides:
+        if item.split("=", 1)[0].strip().startswith("data."):
+            raise RunError(
+                f"--set {item}: the bench gives every model the same data; choose them with "
+                "--data and --test-data"
+            )
+    applied = [item for item in overrides if has_override_key(config, item)]
+    config = apply_overrides(config, applied)
     provenance = {
         "experiment": getattr(exp, "NAME", entry.experiment),
         "module": exp.__name__,
         "preset": preset,
         "overrides": {**entry.fields, "data": "the bench's data config"},
-        "overrides_skipped": [],
+        "overrides_skipped": [item for item in overrides if item not in applied],
     }
+    if applied:
+        provenance["set"] = applied
     return config, provenance

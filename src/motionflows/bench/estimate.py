@@ -23,6 +23,7 @@ def estimate_training(
     *,
     probe_steps: int = 4,
     progress=print,
+    overrides: Sequence[str] = (),
 ) -> dict:
     """Project the training time of a budget on this machine without running it.
 
@@ -39,7 +40,7 @@ def estimate_training(
     out["models"] = {}
     for name in parse_models(models):
         exp = load_experiment(name)
-        config, prov = bench_config(name, budget, data_cfg, exp)
+        config, prov = bench_config(name, budget, data_cfg, exp, overrides)
         entry = _probe(exp, config, prov["preset"], dataset, probe_steps, progress, name)
         out["models"][name] = entry
         log(progress, f"{name}: {entry}")

@@ -47,6 +47,9 @@ from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
+SAMPLERS = ("recurrent", "prior")
+"""How :meth:`VAELSTM.sample` draws: the paper's Algorithm 1, or ancestral sampling."""
+
 
 def diag_normal_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
     """Elementwise log N(x; mean, exp(log_std)^2) (sum it yourself)."""
@@ -103,6 +106,11 @@ class VAELSTM(nnx.Module):
       elbo_samples: z draws averaged in the experiment's reported ELBO.
       sampler_iwae_samples: the K values of the sampler-model bound that ``evaluate``
         reports (``sampler_iwae_<K>``; empty = none).
+      sampler: how :meth:`sample` draws. ``"recurrent"`` (the paper's Algorithm 1): one
+        z_1 ~ N(0, I), then the canvas recurs on itself, c_t = cell(c_{t-1}, h_t), so only
+        z_1 is random. ``"prior"``: the model that training fits and the ELBO bounds,
+        z_t ~ N(0, I) at every pooled step and c_t = cell(z_t, h_t) (ancestral sampling of
+        p(z) p(x | z, c), decoder mean).
     """
 
     def __init__(
@@ -124,6 +132,7 @@ class VAELSTM(nnx.Module):
         l1_weight: float = 0.1,
         elbo_samples: int = 1,
         sampler_iwae_samples: tuple[int, ...] = (),
+        sampler: str = "recurrent",
         rngs: nnx.Rngs,
     ):
         if kernel is None:
@@ -138,6 +147,9 @@ class VAELSTM(nnx.Module):
             )
         if not 0.0 <= dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        if sampler not in SAMPLERS:
+            raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+        self.sampler = sampler
         self.kernel = int(kernel)
         self.fps = float(fps)
         self.latent_dim = int(latent_dim)
@@ -323,7 +335,12 @@ class VAELSTM(nnx.Module):
         """Importance log-weights for the *sampler's* model (Algorithm 1 plus the output
         noise): p_rec(x | c) = int N(z_1; 0, I) N(x; m_rec(z_1, c), diag sigma_x^2) dz_1,
         with m_rec the decoder of the recurrent canvas. Proposal: q(z_1 | x), the
-        inference network's first pooled step. Returns (num_samples, B)."""
+        inference network's first pooled step. Returns (num_samples, B).
+
+        With ``sampler="prior"`` the sampler's model is the trained one, so these are the
+        weights of :meth:`log_weights` (proposal q(z | x) over all pooled steps)."""
+        if self.sampler == "prior":
+            return self.log_weights(x, c, key, num_samples)
         x, c = self._check(x, c, "VAELSTM.sampler_iwae_bound")
         h = self.encode_control(c)
         mu, log_std = self.posterior(x)
@@ -345,8 +362,9 @@ class VAELSTM(nnx.Module):
     def sampler_iwae_bound(
         self, x: jax.Array, c: jax.Array, key: jax.Array, *, num_samples: int = 10
     ) -> jax.Array:
-        """IWAE lower bound (B,) on log p_rec(x | c), the density of Algorithm 1's model with
-        the learned output noise (see :meth:`sampler_log_weights`). Nats, standardised."""
+        """IWAE lower bound (B,) on the density of the sampler's model with the learned
+        output noise (see :meth:`sampler_log_weights`: Algorithm 1's p_rec(x | c), or the
+        trained model for ``sampler="prior"``). Nats, standardised."""
         if num_samples < 1:
             raise ValueError(f"num_samples must be >= 1, got {num_samples}")
         logw = self.sampler_log_weights(x, c, key, num_samples)
@@ -362,14 +380,16 @@ class VAELSTM(nnx.Module):
         seed_history: jax.Array | None = None,
         seed_frames: jax.Array | None = None,
     ) -> jax.Array:
-        """Algorithm 1: z_1 ~ N(0, temperature^2 I), recurrent canvas, decoder mean.
+        """Poses for a control, by the model's ``sampler``: control (B, T, 3) -> poses
+        (B, T, 63), standardised; the output is the decoder mean (no observation noise).
 
-        control (B, T, 3) -> poses (B, T, 63), standardised. With ``seed_history`` (B, S, 63)
-        (``seed_frames=`` is its deprecated old name),
-        S a positive multiple of 4 and <= T, z_1 is drawn from the posterior
-        q(z_1 | seed frames) instead (its std scaled by ``temperature``); the returned
-        frames are all decoded (the seed is not pasted in). The output is the decoder
-        mean (no observation noise is added).
+        ``"recurrent"`` (Algorithm 1): z_1 ~ N(0, temperature^2 I), recurrent canvas.
+        ``"prior"``: z_t ~ N(0, temperature^2 I) at each of the T/4 pooled steps, the
+        training-mode canvas c_t = cell(z_t, h_t). With ``seed_history`` (B, S, 63)
+        (``seed_frames=`` is its deprecated old name), S a positive multiple of 4 and <= T,
+        the latents of the first S/4 steps are drawn from the posterior q(z | seed frames)
+        (std scaled by ``temperature``; the recurrent sampler reads only z_1); the returned
+        frames are all decoded (the seed is not pasted in).
         """
         seed_history = renamed(
             "VAELSTM.sample",
@@ -383,23 +403,41 @@ class VAELSTM(nnx.Module):
         check_temperature(temperature, "VAELSTM.sample")
         b = control.shape[0]
         h = self.encode_control(control)
+        n = h.shape[1]
+        if self.sampler == "prior":
+            return self._sample_prior(key, h, temperature, seed_history)
         eps = jax.random.normal(key, (b, 1, self.latent_dim), jnp.float32)
         if seed_history is None:
             z1 = temperature * eps
         else:
-            if seed_history.ndim != 3 or seed_history.shape[0] != b:
-                raise ValueError(
-                    f"seed_history must have shape (B={b}, S, {POSE_DIM}), "
-                    f"got {tuple(seed_history.shape)}"
-                )
-            seed_history, _ = self._check(seed_history, None, "VAELSTM.sample")
-            if seed_history.shape[1] > control.shape[1]:
-                raise ValueError("seed_history must not be longer than the control")
-            mu, log_std = self.posterior(seed_history)
+            mu, log_std = self._seed_posterior(seed_history, b, control.shape[1])
             z1 = mu[:, :1] + temperature * jnp.exp(log_std[:, :1]) * eps
-        n = h.shape[1]
         z = jnp.concatenate([z1, jnp.zeros((b, n - 1, self.latent_dim), z1.dtype)], axis=1)
         return self.decode(self.canvas(z, h, recurrent=True))
+
+    def _seed_posterior(self, seed_history: jax.Array, b: int, frames: int):
+        """q(z | seed frames): (mean, log_std), each (B, S/4, D), after checking the seed
+        against the batch ``b`` and the control's ``frames``."""
+        if seed_history.ndim != 3 or seed_history.shape[0] != b:
+            raise ValueError(
+                f"seed_history must have shape (B={b}, S, {POSE_DIM}), "
+                f"got {tuple(seed_history.shape)}"
+            )
+        seed_history, _ = self._check(seed_history, None, "VAELSTM.sample")
+        if seed_history.shape[1] > frames:
+            raise ValueError("seed_history must not be longer than the control")
+        return self.posterior(seed_history)
+
+    def _sample_prior(self, key, h, temperature, seed_history) -> jax.Array:
+        """The ``"prior"`` sampler: z (B, N, D) ~ N(0, temperature^2 I), the first S/4
+        steps from q(z | seed) when seeded; training-mode canvas; decoder mean."""
+        b, n = h.shape[:2]
+        z = temperature * jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)
+        if seed_history is not None:
+            mu, log_std = self._seed_posterior(seed_history, b, 4 * n)
+            s = mu.shape[1]
+            z = z.at[:, :s].set(mu + jnp.exp(log_std) * z[:, :s])
+        return self.decode(self.canvas(z, h))
 
     def reconstruct(self, x: jax.Array, c: jax.Array) -> jax.Array:
         """Decoder mean at the posterior mean z = mu(x), training-mode canvas: (B, T, 63)."""
