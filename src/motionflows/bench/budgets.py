@@ -148,8 +148,10 @@ def check_overrides(names: Sequence[str], budget: str, data: DataConfig, overrid
     unused = set(overrides).intersection(*skipped) if skipped else set()
     if unused:
         raise RunError(
-            f"--set {' '.join(sorted(unused))}: no config of {', '.join(names)} has this key "
-            "(the fields of each experiment's Config, as for `motionflows train --set`)"
+            f"--set {' '.join(sorted(unused))}: no config of {', '.join(names)} has this key, "
+            "or a bare name matches several fields (then give the dotted name, e.g. "
+            "train.seed); the keys are the fields of each experiment's Config, as for "
+            "`motionflows train --set`"
         )
 
 
