@@ -320,12 +320,19 @@ def _parse(text: str, kind: Any, key: str) -> Any:
         raise ValueError(f"--set {key}={text}: cannot read {text!r} as {kind}") from err
 
 
+def _matching_fields(paths: dict[str, tuple[str, type]], key: str) -> list[str]:
+    """The dotted paths an override ``key`` names: itself if it is one, else every field
+    whose bare name it is (one match applies, several are ambiguous, none is unknown)."""
+    if key in paths:
+        return [key]
+    return [p for p in paths if p.rsplit(".", 1)[-1] == key]
+
+
 def has_override_key(config: Any, item: str) -> bool:
     """Whether the ``key`` of ``key=value`` names one field of ``config`` (dotted path or a
     unique bare name), i.e. whether :func:`apply_overrides` can apply it."""
-    paths = _field_paths(type(config))
     key = item.split("=", 1)[0].strip()
-    return key in paths or sum(p.rsplit(".", 1)[-1] == key for p in paths) == 1
+    return len(_matching_fields(_field_paths(type(config)), key)) == 1
 
 
 def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
@@ -336,14 +343,11 @@ def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
             raise ValueError(f"--set expects key=value, got {item!r}")
         key, text = item.split("=", 1)
         key = key.strip()
-        if key in paths:
-            path, kind = paths[key]
-        else:
-            matches = [p for p in paths if p.rsplit(".", 1)[-1] == key]
-            if len(matches) != 1:
-                hint = f"ambiguous: {matches}" if matches else f"valid keys: {sorted(paths)}"
-                raise ValueError(f"--set {key}: unknown config key ({hint})")
-            path, kind = paths[matches[0]]
+        matches = _matching_fields(paths, key)
+        if len(matches) != 1:
+            hint = f"ambiguous: {matches}" if matches else f"valid keys: {sorted(paths)}"
+            raise ValueError(f"--set {key}: unknown config key ({hint})")
+        path, kind = paths[matches[0]]
         config = _replace_path(config, path.split("."), _parse(text.strip(), kind, key))
     return config
 
