@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig
+from motionflows.deprecation import key_first
 from motionflows.models.baselines import (
     DiagonalGaussian,
     LinearGaussianAR,
@@ -94,10 +95,12 @@ def evaluate(model, batch, key):
     }
 
 
-def sample(model, control, key, *, temperature=1.0, seed_history=None, seed_pose=None):
+def sample(model, key, control, *, temperature=1.0, seed_history=None, seed_pose=None):
     """Poses (B, T, 63), standardised, for standardised control (B, T, 3); the linear AR
     starts from ``seed_history`` (B, S, 63) when given (``seed_pose``: its deprecated old
-    name), the Gaussian ignores it."""
+    name), the Gaussian ignores it. The old argument order ``(model, control, key)`` still
+    works, with a ``DeprecationWarning``."""
+    key, control = key_first("baselines.sample", key, control)
     control, seed_history = check_sample_args(
         control, temperature, seed_history, "baselines.sample", seed_pose=seed_pose
     )

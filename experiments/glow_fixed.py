@@ -23,6 +23,7 @@ from flax import nnx
 from motionflows.bijectors import initialize_from_data
 from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.deprecation import key_first
 from motionflows.models.glow import PRIORS, Glow
 from motionflows.models.validation import check_sample_args
 
@@ -195,8 +196,8 @@ def evaluate(model: Glow, batch: dict, key: jax.Array) -> dict:
 
 def sample(
     model: Glow,
-    control,
     key,
+    control,
     *,
     temperature: float = 1.0,
     seed_history=None,
@@ -206,8 +207,10 @@ def sample(
 
     The unconditional model uses the control only for its shape. ``seed_history`` (old
     name ``seed_pose``, deprecated) is checked but ignored: a fixed-length Glow generates
-    the whole window at once and cannot condition on given first frames.
+    the whole window at once and cannot condition on given first frames. The old argument
+    order ``(model, control, key)`` still works, with a ``DeprecationWarning``.
     """
+    key, control = key_first("glow_fixed.sample", key, control)
     control, _ = check_sample_args(
         control, temperature, seed_history, "glow_fixed.sample", seed_pose=seed_pose
     )

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from motionflows.bijectors import initialize_from_data
 from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.deprecation import key_first
 from motionflows.models.moglow import MoGlow
 from motionflows.models.validation import check_sample_args
 
@@ -245,29 +246,32 @@ def window_log_prob(model: MoGlow, pose, control) -> jax.Array:
 
 
 @jax.jit
-def _sample(model, control, key, temperature, seed_history):
+def _sample(model, key, control, temperature, seed_history):
     return model.sample(key, control, seed_history=seed_history, temperature=temperature)
 
 
 def sample(
     model: MoGlow,
-    control,
     key: jax.Array,
+    control,
     *,
     temperature: float = 1.0,
     seed_history=None,
     seed_pose=None,
 ) -> jax.Array:
     """Poses (B, T, 63), standardised, following control (B, T, 3) (jitted scan over frames).
+    The argument order is that of ``MoGlow.sample(key, control)``; the old ``(model,
+    control, key)`` still works, with a ``DeprecationWarning``.
 
     ``seed_history``: None (zero history, the official start) or (B, S, 63) standardised
     poses that precede the first frame (the last tau are used); ``seed_pose`` is its
     deprecated old name.
     """
+    key, control = key_first("moglow.sample", key, control)
     control, seed_history = check_sample_args(
         control, temperature, seed_history, "moglow.sample", seed_pose=seed_pose
     )
-    return _sample(model, control, key, jnp.float32(temperature), seed_history)
+    return _sample(model, key, control, jnp.float32(temperature), seed_history)
 
 
 if __name__ == "__main__":

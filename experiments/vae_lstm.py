@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.deprecation import key_first
 from motionflows.models.vae_lstm import SAMPLERS, VAELSTM, l1_penalty
 from motionflows.models.validation import check_sample_args
 from motionflows.nets.vae import kernel_for_fps
@@ -223,8 +224,8 @@ def evaluate(model: VAELSTM, batch: dict, key: jax.Array) -> dict[str, jax.Array
 
 def sample(
     model: VAELSTM,
-    control: jax.Array,
     key: jax.Array,
+    control: jax.Array,
     *,
     temperature: float = 1.0,
     seed_history: jax.Array | None = None,
@@ -233,7 +234,9 @@ def sample(
     """Standardised poses (B, T, 63) for the control (B, T, 3), by the config's ``sampler``
     (default the paper's Algorithm 1; :meth:`VAELSTM.sample`). ``seed_history`` (B, S, 63),
     S a multiple of 4: the first latents from the posterior of those frames (``seed_pose``:
-    its deprecated old name)."""
+    its deprecated old name; the old argument order ``(model, control, key)``: a
+    ``DeprecationWarning``)."""
+    key, control = key_first("vae_lstm.sample", key, control)
     control, seed_history = check_sample_args(
         control, temperature, seed_history, "vae_lstm.sample", seed_pose=seed_pose
     )

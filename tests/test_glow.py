@@ -293,12 +293,12 @@ def test_trained_samples_follow_the_control(trained):
     slow, fast = np.percentile(speeds, [10, 90])
     feet = [3 * JOINT_NAMES.index(j) + 2 for j in ("LeftFoot", "RightFoot")]  # z = forward
 
-    sample = jax.jit(lambda m, c, k: glow_fixed.sample(m, c, k, temperature=0.8))
+    sample = jax.jit(lambda m, k, c: glow_fixed.sample(m, k, c, temperature=0.8))
 
     def foot_travel(speed):
         c = np.tile(np.array([speed, 0.0, 0.0], np.float32), (96, WINDOW, 1))
         c = jnp.asarray(std.normalize_control(c), jnp.float32)
-        x = sample(model, c, jax.random.key(7))
+        x = sample(model, jax.random.key(7), c)
         x = std.denormalize_pose(np.asarray(x))
         return float(np.abs(np.diff(x[:, :, feet], axis=1)).sum(1).mean())
 

@@ -60,14 +60,14 @@ def test_protocol_functions():
     np.testing.assert_allclose(ll["official"], ll["official_dropout"], rtol=1e-5)
     x = exp.sample(
         model,
-        batch["control"],
         jax.random.key(4),
+        batch["control"],
         temperature=0.5,
         seed_history=batch["pose"][:, :3],
     )
     assert x.shape == (4, 8, POSE_DIM) and np.all(np.isfinite(x))
-    x0 = exp.sample(model, batch["control"], jax.random.key(4), temperature=0.0)
-    x1 = exp.sample(model, batch["control"], jax.random.key(5), temperature=0.0)
+    x0 = exp.sample(model, jax.random.key(4), batch["control"], temperature=0.0)
+    x1 = exp.sample(model, jax.random.key(5), batch["control"], temperature=0.0)
     np.testing.assert_allclose(x0, x1, atol=1e-6)
     with pytest.raises(ValueError, match="control"):
-        exp.sample(model, batch["control"][..., :2], key)
+        exp.sample(model, key, batch["control"][..., :2])

@@ -106,12 +106,12 @@ def test_tiny_moglow_beats_linear_gaussian_and_follows_control():
 
     # samples follow the control: faster control -> larger phase advance per frame
     model = nnx.merge(graph, params, rest)
-    sample = jax.jit(lambda m, c, k: m.sample(k, c, seed_history=seed))
+    sample = jax.jit(lambda m, k, c, s: m.sample(k, c, seed_history=s))  # s: not a closure
     advance = {}
     for speed in (0.0, 1.0):
         pose, ctrl = oscillator(64, 2, speed=speed)
         seed = jnp.asarray(pose[:, :TAU])
-        x = np.asarray(sample(model, jnp.asarray(ctrl), jax.random.key(3)))
+        x = np.asarray(sample(model, jax.random.key(3), jnp.asarray(ctrl), seed))
         theta = np.unwrap(np.arctan2(x[..., 1], x[..., 0]), axis=1)
         advance[speed] = float(np.median(np.diff(theta, axis=1)))
     print("phase advance per frame", advance)

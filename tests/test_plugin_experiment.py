@@ -83,7 +83,7 @@ def evaluate(model, batch, key):
     return {"window": model.log_prob(batch["pose"], batch["control"])}
 
 
-def sample(model, control, key, *, temperature=1.0, seed_history=None):
+def sample(model, key, control, *, temperature=1.0, seed_history=None):
     control, _ = check_sample_args(control, temperature, seed_history, "toy.sample")
     eps = jax.random.normal(key, control.shape[:-1] + (POSE_DIM,))
     return model.mean(control) + temperature * jnp.exp(model.log_std[...]) * eps

@@ -211,10 +211,10 @@ def draw_samples(
     temperature = float(temperature)
 
     @jax.jit
-    def draw(model, control, key):
-        return module.sample(model, control, key, temperature=temperature)
+    def draw(model, key, control):
+        return runs.experiment_sample(module, model, key, control, temperature=temperature)
 
-    pose_std = np.asarray(draw(model, c_std, jax.random.key(seed)))
+    pose_std = np.asarray(draw(model, jax.random.key(seed), c_std))
     if not np.all(np.isfinite(pose_std)):
         raise RunError("the sampled poses hold NaN/inf; try a lower temperature")
     return np.asarray(standardizer.denormalize_pose(pose_std), np.float32)

@@ -7,6 +7,7 @@ A run lives in ``runs/<experiment>/<run-name>/`` with ``config.json``,
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import sys
@@ -66,6 +67,33 @@ def resolve_experiment(name: str):
             f"experiment {name!r} ({module.__name__}) lacks {missing} (see docs/ARCHITECTURE.md)"
         )
     return module
+
+
+def _control_before_key(sample) -> bool:
+    """Whether an experiment's ``sample`` is written in the old order ``(model, control,
+    key)`` (its parameters are named so), not ``(model, key, control)``."""
+    try:
+        names = list(inspect.signature(sample).parameters)
+    except (TypeError, ValueError):
+        return False
+    return {"control", "key"} <= set(names) and names.index("control") < names.index("key")
+
+
+def experiment_sample(module, model, key, control, **options):
+    """``module.sample(model, key, control, **options)``: how the library calls an
+    experiment's sampler. An experiment written against the old contract ``sample(model,
+    control, key)`` (its parameters named so) is called in its own order, with a
+    ``DeprecationWarning`` asking it to move to ``(model, key, control)``."""
+    if _control_before_key(module.sample):
+        warnings.warn(
+            f"{module.__name__}.sample(model, control, key): this argument order is "
+            "deprecated, define sample(model, key, control, ...) (the order of "
+            "model.sample(key, control))",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return module.sample(model, control, key, **options)
+    return module.sample(model, key, control, **options)
 
 
 def new_run_name(preset: str | None) -> str:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from motionflows.bench.budgets import EVAL_CHUNK
+from motionflows.runs import experiment_sample
 
 
 def describe_machine() -> dict:
@@ -75,26 +76,26 @@ def _memory() -> str:
 
 
 def make_sampler(exp, temperature: float):
-    """A jitted ``(model, control, key) -> pose`` (standardised) from the experiment's
+    """A jitted ``(model, key, control) -> pose`` (standardised) from the experiment's
     ``sample``; falls back to the un-jitted function if the sampler cannot be traced."""
     import jax
 
-    def sample(model, control, key):
-        return exp.sample(model, control, key, temperature=temperature)
+    def sample(model, key, control):
+        return experiment_sample(exp, model, key, control, temperature=temperature)
 
     jitted = jax.jit(sample)
 
-    def call(model, control, key):
+    def call(model, key, control):
         nonlocal jitted
         try:
-            return jitted(model, control, key)
+            return jitted(model, key, control)
         except (
             jax.errors.ConcretizationTypeError,
             jax.errors.TracerBoolConversionError,
             jax.errors.TracerArrayConversionError,
         ):
             jitted = sample
-            return sample(model, control, key)
+            return sample(model, key, control)
 
     return call
 
@@ -106,12 +107,12 @@ def time_sampler(sampler, model, control: np.ndarray, batch: int, key, repeats: 
     reps = int(math.ceil(batch / len(control)))
     c = np.concatenate([control] * reps)[:batch]
     t0 = time.perf_counter()
-    jax.block_until_ready(sampler(model, c, key))
+    jax.block_until_ready(sampler(model, key, c))
     first = time.perf_counter() - t0
     times = []
     for r in range(repeats):
         t0 = time.perf_counter()
-        jax.block_until_ready(sampler(model, c, jax.random.fold_in(key, r + 1)))
+        jax.block_until_ready(sampler(model, jax.random.fold_in(key, r + 1), c))
         times.append(time.perf_counter() - t0)
     best = min(times)
     frames = batch * c.shape[1]
@@ -128,7 +129,7 @@ def sample_in_chunks(sampler, model, control: np.ndarray, key) -> np.ndarray:
     n = len(control)
     for b, start in enumerate(range(0, n, EVAL_CHUNK)):
         idx = np.arange(start, start + EVAL_CHUNK) % n
-        x = sampler(model, control[idx], jax.random.fold_in(key, b))
+        x = sampler(model, jax.random.fold_in(key, b), control[idx])
         out.append(np.asarray(x, np.float32)[: min(EVAL_CHUNK, n - start)])
     return np.concatenate(out)
 

@@ -15,7 +15,7 @@ standardiser, batch indices), :mod:`.datasets` (sources, splits, cache), :mod:`.
 from motionflows.data.augment import mirror_clip, reverse_clip
 from motionflows.data.bvh import BVH, forward_kinematics, parse_bvh, read_bvh
 from motionflows.data.controls import load_control
-from motionflows.data.datasets import SOURCES, MotionDataset, load_clips, load_dataset
+from motionflows.data.datasets import MotionDataset, load_dataset
 from motionflows.data.features import (
     Clip,
     clip_from_bvh,
@@ -25,6 +25,7 @@ from motionflows.data.features import (
 )
 from motionflows.data.pipeline import Standardizer, WindowSet
 from motionflows.data.skeleton import SkeletonMapping, VirtualJoint, register_skeleton
+from motionflows.data.sources import SOURCES, load_clips
 from motionflows.errors import MotionDataError
 
 __all__ = [

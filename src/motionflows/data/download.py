@@ -21,7 +21,7 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
-from motionflows.data.datasets import MANIFEST, bandai_manifest, git_blob_sha1
+from motionflows.data.sources import MANIFEST, bandai_manifest, git_blob_sha1
 from motionflows.errors import MotionDataError
 
 COMMIT = "74ead3ba1ae4696404e6086233779f60de8bf9ef"

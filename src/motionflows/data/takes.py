@@ -63,7 +63,7 @@ def parse_spec(spec: str) -> tuple[str, Path | None]:
 
 def read_takes(spec: str, *, fps: float, skeleton: str = "bandai") -> tuple[list[Clip], str]:
     """The clips of every take of ``spec`` at ``fps`` (see the module docstring) and a label."""
-    from motionflows.data.datasets import load_clips
+    from motionflows.data.sources import load_clips
 
     source, path = parse_spec(spec)
     if path is not None and path.is_file():

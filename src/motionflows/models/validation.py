@@ -103,7 +103,7 @@ def check_sample_args(
     control_dim: int = 3,
     seed_pose: Any = None,
 ) -> tuple[jax.Array, Any]:
-    """The checks every experiment's ``sample(model, control, key, *, temperature,
+    """The checks every experiment's ``sample(model, key, control, *, temperature,
     seed_history)`` makes before it jits: control (B, T, control_dim) floating, non-empty
     and finite, the temperature finite and >= 0, ``seed_history`` (if given) floating and
     finite. ``seed_pose`` is the deprecated old name of ``seed_history`` (a

@@ -11,6 +11,7 @@ import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.validation import check_input, check_temperature
+from motionflows.runs import experiment_sample
 
 INFO_FILE = "pretrained.json"
 """Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
@@ -47,8 +48,8 @@ class PretrainedModel:
         self.name = getattr(module, "NAME", "model")
         self.fixed_length = getattr(module, "CAUSAL", True) is False  # samples whole windows
         self._sample = jax.jit(
-            lambda model, control, key, temperature: module.sample(
-                model, control, key, temperature=temperature
+            lambda model, key, control, temperature: experiment_sample(
+                module, model, key, control, temperature=temperature
             )
         )
         self._evaluate = jax.jit(module.evaluate)
@@ -74,7 +75,7 @@ class PretrainedModel:
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, "PretrainedModel.sample"))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
-        x = self._sample(self.model, c, jax.random.key(int(seed)), np.float32(temp))
+        x = self._sample(self.model, jax.random.key(int(seed)), c, np.float32(temp))
         return np.asarray(self.standardizer.denormalize_pose(np.asarray(x)), np.float32)
 
     def log_prob(self, pose, control) -> np.ndarray:
