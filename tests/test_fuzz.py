@@ -636,9 +636,9 @@ def test_float16_is_computed_in_float32_and_temperature_is_checked(models):
     for wrapper, model in ((moglow_exp.sample, moglow), (vae_exp.sample, vae)):
         for bad in (-1.0, float("nan"), float("inf")):
             with pytest.raises(ValueError, match="temperature must be a finite number >= 0"):
-                wrapper(model, c, jax.random.key(0), temperature=bad)
+                wrapper(model, jax.random.key(0), c, temperature=bad)
         with pytest.raises(ValueError, match="control is empty"):
-            wrapper(model, c[:0], jax.random.key(0))
+            wrapper(model, jax.random.key(0), c[:0])
     with pytest.raises(ValueError, match="temperature"):
         moglow.stream_step(moglow.init_stream(2), c[:, 0], jax.random.key(0), temperature=-1)
 
