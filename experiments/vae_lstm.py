@@ -30,6 +30,9 @@ from motionflows.nets.vae import kernel_for_fps
 
 NAME = "vae_lstm"
 CAUSAL = False  # the encoder and the canvas see the whole window
+# Config fields that change only how a trained model samples (the bench reuses a run that
+# differs in them, and loads it with the requested values).
+SAMPLING_FIELDS = ("sampler",)
 
 ALLOWED_IWAE_K = (1, 2, 5, 10, 20, 50, 100, 200, 500, 1000)
 """K values that may appear in ``iwae_samples`` (each has an entry in ``SCOPES``)."""

@@ -224,6 +224,35 @@ def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, ca
     assert "train.seed" in capsys.readouterr().err
 
 
+def test_a_sampling_only_field_reuses_the_run_and_samples_as_asked(smoke, tmp_path):
+    """``--set sampler=...`` (a VAE-LSTM ``SAMPLING_FIELDS`` entry) changes how the trained
+    model samples, not its training: the bench reuses the finished run and loads it with
+    the requested sampler (so the motion metrics change); other fields still retrain."""
+    if "vae_lstm" not in MODELS:
+        pytest.skip("no vae_lstm experiment")
+    root, first = smoke
+    before = first["models"]["vae_lstm"]
+    assert before["config"]["sampler"] == "recurrent"
+    again = bench.run_benchmark(
+        data="synthetic", models="vae_lstm", budget="smoke", out=tmp_path / "out",
+        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
+        overrides=["sampler=prior"],
+    )  # fmt: skip
+    entry = again["models"]["vae_lstm"]
+    assert entry["reused"] and entry["run_dir"] == before["run_dir"]
+    assert entry["config"]["sampler"] == "prior"
+    assert entry["motion"]["diversity"] != pytest.approx(before["motion"]["diversity"], rel=1e-3)
+    # the training scopes are the same weights' (the ELBO does not depend on the sampler)
+    a = entry["likelihood"]["elbo"]["test"]["nats_per_frame_metres"]
+    assert a == pytest.approx(before["likelihood"]["elbo"]["test"]["nats_per_frame_metres"])
+    from motionflows import run
+
+    _, config, model, _ = run.restore_run(before["run_dir"], sampling={"sampler": "prior"})
+    assert config.sampler == "prior" and model.sampler == "prior"
+    with pytest.raises(RunError, match="only the experiment's SAMPLING_FIELDS"):
+        run.restore_run(before["run_dir"], sampling={"latent_dim": 3})
+
+
 def test_configs_share_one_data_config():
     data = bench.parse_data_spec("synthetic", "smoke")
     seen = set()

@@ -9,6 +9,7 @@ turns a control in data units into pose samples in metres. A run's random stream
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -64,28 +65,48 @@ def load_standardizer(run_dir: str | Path):
 
 
 def load_run(
-    run_dir: str | Path, *, checkpoint: str = "best", dataset: Any = None, load_data: bool = True
+    run_dir: str | Path,
+    *,
+    checkpoint: str = "best",
+    dataset: Any = None,
+    load_data: bool = True,
+    sampling: dict | None = None,
 ):
     """Rebuild ``(module, config, model, dataset)`` from a run directory alone.
 
     ``checkpoint``: "best" (falls back to "latest" if no best exists) or "latest".
     ``dataset``: reuse an already loaded dataset; ``load_data=False`` returns None.
+    ``sampling``: values for the experiment's ``SAMPLING_FIELDS`` (see :func:`restore_run`).
     """
-    module, config, model, _ = restore_run(run_dir, checkpoint=checkpoint)
+    module, config, model, _ = restore_run(run_dir, checkpoint=checkpoint, sampling=sampling)
     if dataset is None and load_data:
         dataset = config.data.load()
     return module, config, model, dataset
 
 
-def restore_run(run_dir: str | Path, *, checkpoint: str = "best"):
+def restore_run(run_dir: str | Path, *, checkpoint: str = "best", sampling: dict | None = None):
     """``(module, config, model, saved)``: the run's model with the parameters of its
     ``checkpoint`` ("best", falling back to "latest"; or "latest"), restored once.
     ``saved`` = ``{"which": the checkpoint read, "meta": its metadata}`` (``meta["step"]``
-    is the step of the newest complete checkpoint, the one restored)."""
+    is the step of the newest complete checkpoint, the one restored).
+
+    ``sampling``: ``{field: value}`` for fields in the experiment's ``SAMPLING_FIELDS``
+    (e.g. the VAE-LSTM's ``sampler``), which change how the trained model samples, not its
+    parameters: the model is built with them in place of the saved values. Any other field
+    is a ``RunError`` (it would not match the checkpoint)."""
     run_dir = runs.check_run_dir(run_dir)
     payload = cfg.read_config_json(run_dir / "config.json")
     module = runs.resolve_experiment(payload["experiment"])
     config = cfg.config_from_json(run_dir / "config.json", module.Config, payload)
+    if sampling:
+        allowed = tuple(getattr(module, "SAMPLING_FIELDS", ()))
+        bad = sorted(set(sampling) - set(allowed))
+        if bad:
+            raise RunError(
+                f"{bad} cannot be changed when loading {run_dir}: only the experiment's "
+                f"SAMPLING_FIELDS {list(allowed)} can (other fields need a new training)"
+            )
+        config = dataclasses.replace(config, **sampling)
     model = module.build(config, key=run_keys(config.train.seed)["build"])
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     ckpt = Checkpointer(run_dir / "checkpoints", keep=config.train.keep_checkpoints)

@@ -30,7 +30,14 @@ from motionflows.bench.budgets import (
     parse_data_spec,
     parse_models,
 )
-from motionflows.bench.reuse import data_tag, fit_seconds, log, obtain_run, train_speed
+from motionflows.bench.reuse import (
+    data_tag,
+    fit_seconds,
+    log,
+    obtain_run,
+    sampling_fields,
+    train_speed,
+)
 from motionflows.bench.scoring import (
     MOTION_METRICS,
     merge_splits,
@@ -106,7 +113,11 @@ def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, da
     )  # fmt: skip
     entry.setdefault("timings", {})["train"] = {"wall_s": secs, "cpu_s": time.process_time() - c0}
     entry.update(run_dir=str(run_dir), reused=reused, train_seconds=secs, steps=config.train.steps)
-    _, run_config, model, dataset = training.load_run(run_dir, checkpoint="best", dataset=dataset)
+    # a reused run may differ in the sampling-only fields: load it with the requested ones
+    sampling = {f: getattr(config, f) for f in sampling_fields(exp)}
+    _, run_config, model, dataset = training.load_run(
+        run_dir, checkpoint="best", dataset=dataset, sampling=sampling
+    )
     entry["params"] = count_params(model)
     if int(run_config.train.steps) > 0:
         # placed as the training loop places it (replicated over the data mesh), so the

@@ -39,24 +39,39 @@ def run_finished(run_dir: Path, steps: int) -> bool:
     return last["status"] == "finished" and int(last.get("step") or 0) >= steps
 
 
-def find_run(runs_dir: str | Path, experiment: str, config: Any) -> Path | None:
+def _without(config: dict | None, fields: tuple[str, ...]) -> dict | None:
+    return None if config is None else {k: v for k, v in config.items() if k not in fields}
+
+
+def find_run(
+    runs_dir: str | Path, experiment: str, config: Any, *, sampling_fields: tuple[str, ...] = ()
+) -> Path | None:
     """The newest finished run under ``runs_dir/<experiment>/`` whose saved config equals
-    ``config`` (same data, model and training settings), else None."""
+    ``config`` (same data, model and training settings) but for ``sampling_fields`` (the
+    experiment's ``SAMPLING_FIELDS``: fields that change how a trained model samples, not
+    how it trains), else None."""
     base = Path(runs_dir) / experiment
     if not base.is_dir():
         return None
-    want, steps = to_dict(config), int(config.train.steps)
+    want, steps = _without(to_dict(config), sampling_fields), int(config.train.steps)
     hits = []
     for path in base.glob("*/config.json"):
         try:
             saved = read_config_json(path)
         except RunError:
             continue
-        if saved.get("experiment", experiment) != experiment or saved.get("config") != want:
+        if saved.get("experiment", experiment) != experiment:
+            continue
+        if _without(saved.get("config"), sampling_fields) != want:
             continue
         if run_finished(path.parent, steps):
             hits.append(path.parent)
     return max(hits, key=lambda p: p.stat().st_mtime) if hits else None
+
+
+def sampling_fields(exp) -> tuple[str, ...]:
+    """The experiment's ``SAMPLING_FIELDS`` (config fields that change only sampling)."""
+    return tuple(getattr(exp, "SAMPLING_FIELDS", ()))
 
 
 def data_tag(data: DataConfig) -> str:
@@ -81,7 +96,7 @@ def obtain_run(
     """(run_dir, reused, training seconds): reuse a finished identical run or train one."""
     experiment = provenance["experiment"]
     if not retrain:
-        found = find_run(runs_dir, experiment, config)
+        found = find_run(runs_dir, experiment, config, sampling_fields=sampling_fields(exp))
         if found is not None:
             log(progress, f"{model_name}: reusing finished run {found}")
             return found, True, 0.0
