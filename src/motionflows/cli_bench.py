@@ -54,7 +54,8 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         metavar="KEY=VALUE",
         help="config changes for every model whose config has the key (dotted or unique bare "
         "names, as in `motionflows train --set`), e.g. train.seed=1 for a second training "
-        "seed; changed runs are trained, not reused; data.* keys are refused (use --data)",
+        "seed; changed runs are trained, not reused, unless only an experiment's "
+        "SAMPLING_FIELDS differ (e.g. sampler=prior); data.* keys are refused (use --data)",
     )
     p.add_argument(
         "--performer-split",
