@@ -35,7 +35,7 @@ from motionflows.bench.reuse import (
     fit_seconds,
     log,
     obtain_run,
-    sampling_fields,
+    sampling_fields_of,
     train_speed,
 )
 from motionflows.bench.scoring import (
@@ -114,7 +114,7 @@ def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, da
     entry.setdefault("timings", {})["train"] = {"wall_s": secs, "cpu_s": time.process_time() - c0}
     entry.update(run_dir=str(run_dir), reused=reused, train_seconds=secs, steps=config.train.steps)
     # a reused run may differ in the sampling-only fields: load it with the requested ones
-    sampling = {f: getattr(config, f) for f in sampling_fields(exp)}
+    sampling = {f: getattr(config, f) for f in sampling_fields_of(exp)}
     _, run_config, model, dataset = training.load_run(
         run_dir, checkpoint="best", dataset=dataset, sampling=sampling
     )

@@ -69,7 +69,7 @@ def find_run(
     return max(hits, key=lambda p: p.stat().st_mtime) if hits else None
 
 
-def sampling_fields(exp) -> tuple[str, ...]:
+def sampling_fields_of(exp) -> tuple[str, ...]:
     """The experiment's ``SAMPLING_FIELDS`` (config fields that change only sampling)."""
     return tuple(getattr(exp, "SAMPLING_FIELDS", ()))
 
@@ -96,7 +96,7 @@ def obtain_run(
     """(run_dir, reused, training seconds): reuse a finished identical run or train one."""
     experiment = provenance["experiment"]
     if not retrain:
-        found = find_run(runs_dir, experiment, config, sampling_fields=sampling_fields(exp))
+        found = find_run(runs_dir, experiment, config, sampling_fields=sampling_fields_of(exp))
         if found is not None:
             log(progress, f"{model_name}: reusing finished run {found}")
             return found, True, 0.0
