@@ -50,6 +50,15 @@ def smoke(tmp_path_factory):
     return root, results
 
 
+def _bench_again(smoke, out, models: str, overrides=()) -> dict:
+    """The smoke bench once more on ``models``, against the fixture's runs directory."""
+    root, _ = smoke
+    return bench.run_benchmark(
+        data="synthetic", models=models, budget="smoke", out=out, runs_dir=root / "runs",
+        strict=True, gifs=False, progress=None, overrides=overrides,
+    )  # fmt: skip
+
+
 def test_all_five_models_are_benchmarked():
     # the baselines always exist; the deep models must be importable once they land
     assert {"gaussian", "linear_ar"} <= set(MODELS)
@@ -175,16 +184,7 @@ def test_motion_quality_and_speed(smoke):
 
 def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     root, first = smoke
-    again = bench.run_benchmark(
-        data="synthetic",
-        models="gaussian,linear_ar",
-        budget="smoke",
-        out=tmp_path / "out",
-        runs_dir=root / "runs",
-        strict=True,
-        gifs=False,
-        progress=None,
-    )
+    again = _bench_again(smoke, tmp_path / "out", "gaussian,linear_ar")
     for name in ("gaussian", "linear_ar"):
         entry = again["models"][name]
         assert entry["reused"] and entry["run_dir"] == first["models"][name]["run_dir"]
@@ -201,17 +201,13 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
 
 
 def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, capsys):
-    root, first = smoke
+    _, first = smoke
     data = bench.parse_data_spec("synthetic", "smoke")
     config, prov = bench.bench_config("moglow", "smoke", data, None, ["history_noise=0.1"])
     assert config.history_noise == 0.1 and prov["set"] == ["history_noise=0.1"]
     plain, prov = bench.bench_config("linear_ar", "smoke", data, None, ["history_noise=0.1"])
     assert prov["overrides_skipped"] == ["history_noise=0.1"] and "set" not in prov
-    again = bench.run_benchmark(
-        data="synthetic", models="linear_ar", budget="smoke", out=tmp_path / "out",
-        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
-        overrides=["train.seed=3"],
-    )  # fmt: skip
+    again = _bench_again(smoke, tmp_path / "out", "linear_ar", ["train.seed=3"])
     entry = again["models"]["linear_ar"]
     assert not entry["reused"] and entry["config"]["train"]["seed"] == 3
     assert entry["run_dir"] != first["models"]["linear_ar"]["run_dir"]
@@ -227,17 +223,14 @@ def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, ca
 def test_a_sampling_only_field_reuses_the_run_and_samples_as_asked(smoke, tmp_path):
     """``--set sampler=...`` (a VAE-LSTM ``SAMPLING_FIELDS`` entry) changes how the trained
     model samples, not its training: the bench reuses the finished run and loads it with
-    the requested sampler (so the motion metrics change); other fields still retrain."""
+    the requested sampler (so the motion metrics change); loading a run with any other
+    field changed is refused."""
     if "vae_lstm" not in MODELS:
         pytest.skip("no vae_lstm experiment")
-    root, first = smoke
+    _, first = smoke
     before = first["models"]["vae_lstm"]
     assert before["config"]["sampler"] == "recurrent"
-    again = bench.run_benchmark(
-        data="synthetic", models="vae_lstm", budget="smoke", out=tmp_path / "out",
-        runs_dir=root / "runs", strict=True, gifs=False, progress=None,
-        overrides=["sampler=prior"],
-    )  # fmt: skip
+    again = _bench_again(smoke, tmp_path / "out", "vae_lstm", ["sampler=prior"])
     entry = again["models"]["vae_lstm"]
     assert entry["reused"] and entry["run_dir"] == before["run_dir"]
     assert entry["config"]["sampler"] == "prior"
