@@ -5,7 +5,14 @@ Recipe (FEATURES.md, Holden et al. 2016 with the two documented fixes), for worl
 
 1. Resample to the target rate by linear interpolation at ``t = k / fps``.
 2. Floor: subtract the plain minimum over the clip of the ankle and toe heights.
-3. Root: ``ref[t] = Hips[t] * (1, 0, 1)``, Gaussian-smoothed over time (sigma 0.05 s).
+3. Root: ``ref[t] = Hips[t] * (1, 0, 1)``, Gaussian-smoothed over time (sigma 1/3 s, the
+   facing's; Holden used 0.05 s). The longer smoothing keeps the gait cycle out of the
+   control: the hip's sway and its speed changes within a stride stay in the pose, and the
+   control says only where the character travels, as a user's control (a game pad, a
+   preset path) does. With 0.05 s the control oscillates with the stride, and a motion whose
+   stride phase differs from the control's slides its planted feet by the oscillation
+   (real poses on their own control shifted by 5 frames slide at 0.35 m/s, 5.5x their 0.064
+   m/s; with 1/3 s, 0.10 m/s; docs/readme/moglow_quality.md).
 4. Facing: ``across = (LeftArm - RightArm) + (LeftUpLeg - RightUpLeg)`` (floor-projected,
    normalised), ``forward = across x (0, 1, 0)``, ``yaw[t] = atan2(forward.x, forward.z)``
    (+ = counter-clockwise seen from above), unwrapped and Gaussian-smoothed (sigma 1/3 s).
@@ -43,7 +50,9 @@ from motionflows.data.names import (
 )
 from motionflows.errors import MotionDataError
 
-ROOT_SIGMA_S = 0.05  # 3 frames at 60 fps
+ROOT_SIGMA_S = 1.0 / 3.0
+"""Root smoothing (seconds): the facing's timescale, long enough to remove the gait cycle
+from the control (module docstring, step 3). Holden et al. used 0.05 s (3 frames at 60 fps)."""
 MAX_POSITION_M = 1000.0
 """Largest accepted |joint coordinate| in metres after unit conversion (1 km)."""
 MAX_RESAMPLED_FRAMES = 360_000
@@ -183,8 +192,12 @@ def features_from_positions(
     name: str = "clip",
     meta: dict | None = None,
     path: str | None = None,
+    root_sigma_s: float = ROOT_SIGMA_S,
 ) -> Clip:
-    """World positions (F, 21, 3) metres y-up at ``src_fps`` -> :class:`Clip` at ``fps``."""
+    """World positions (F, 21, 3) metres y-up at ``src_fps`` -> :class:`Clip` at ``fps``.
+
+    ``root_sigma_s`` is the root's smoothing in seconds (step 3; 0.05 gives Holden's
+    features, whose control carries the gait cycle)."""
     world = np.asarray(world, dtype=np.float64)
     if world.ndim != 3 or world.shape[1:] != (NUM_JOINTS, 3):
         raise ValueError(f"world positions must be (F, {NUM_JOINTS}, 3), got {world.shape}")
@@ -215,7 +228,7 @@ def features_from_positions(
     p[..., 1] -= floor
     ref = p[:, _HIP].copy()
     ref[:, 1] = 0.0
-    ref = gaussian_smooth(ref, ROOT_SIGMA_S * fps)
+    ref = gaussian_smooth(ref, float(root_sigma_s) * fps)
     yaw = facing_yaw(p, fps)
     local = rotate_y(p - ref[:, None, :] * np.array([1.0, 0.0, 1.0]), -yaw[:, None])
     step = rotate_y(ref[1:] - ref[:-1], -yaw[:-1])
@@ -311,6 +324,7 @@ def clip_from_bvh(
     *,
     name: str | None = None,
     meta: dict | None = None,
+    root_sigma_s: float = ROOT_SIGMA_S,
 ) -> Clip:
     """Read a BVH file and return its features as a :class:`Clip` (see module docstring).
 
@@ -318,6 +332,7 @@ def clip_from_bvh(
       path: the .bvh file.
       fps: target frame rate (20 by default; e.g. 60 for the VAE-LSTM paper preset).
       skeleton: mapping name (``"bandai"``, ``"cmu"``, or registered), or a mapping.
+      root_sigma_s: the root's smoothing in seconds (default :data:`ROOT_SIGMA_S`).
     Raises:
       MotionDataError: unreadable or malformed file (names file, line and problem), or a
         skeleton mapping that does not fit the file.
@@ -331,4 +346,6 @@ def clip_from_bvh(
     p = Path(path)
     info = {"file": str(p), "skeleton": mapping.name, "src_frames": bvh.num_frames}
     info.update(meta or {})
-    return features_from_positions(world, bvh.fps, fps, name=name or p.stem, meta=info, path=str(p))
+    return features_from_positions(
+        world, bvh.fps, fps, name=name or p.stem, meta=info, path=str(p), root_sigma_s=root_sigma_s
+    )
