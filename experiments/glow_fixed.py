@@ -22,6 +22,7 @@ from flax import nnx
 
 from motionflows.bijectors import initialize_from_data
 from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
+from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
 from motionflows.models.glow import PRIORS, Glow
@@ -78,7 +79,9 @@ PRESETS: dict[str, Config] = {
     # output scale of its zero-initialised last conv (our net: conv3 -> ReLU -> conv1 ->
     # ReLU -> zero conv3).
     "paper": Config(
-        data=DataConfig(window=80, hop=10, mirror=True, reverse=True),
+        data=DataConfig(
+            window=80, hop=10, mirror=True, reverse=True, root_sigma_s=HOLDEN_ROOT_SIGMA_S
+        ),
         train=TrainConfig(
             steps=20_000,
             batch_size=100,

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 
 from motionflows.bijectors import initialize_from_data
 from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
+from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
 from motionflows.models.moglow import MoGlow
@@ -87,9 +88,12 @@ PRESETS: dict[str, Config] = {
     # Adam (0.9, 0.999, 1e-8), lr 1e-4 with the noam rule (warm-up 1000, floor 1e-4: a linear
     # warm-up then constant 1e-4), clip values at 5 then the global norm at 100, 160k steps,
     # validation every 200 steps. One difference: we validate on the held-out val split
-    # (clean and with dropout), the official code on its last 100 training clips.
+    # (clean and with dropout), the official code on its last 100 training clips. The data
+    # are Holden's features (root smoothed over 0.05 s), as the authors' data were made.
     "paper": Config(
-        data=DataConfig(window=80, hop=10, mirror=True, reverse=True),
+        data=DataConfig(
+            window=80, hop=10, mirror=True, reverse=True, root_sigma_s=HOLDEN_ROOT_SIGMA_S
+        ),
         train=TrainConfig(
             steps=160_000,
             batch_size=100,

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.deprecation import key_first
 from motionflows.models.vae_lstm import SAMPLERS, VAELSTM, l1_penalty
 from motionflows.models.validation import check_sample_args
@@ -92,7 +93,7 @@ PRESETS: dict[str, Config] = {
     # hand-written Adam, 3000 epochs: ~100k steps of batch 40 on the Bandai set at 60 fps
     # (~33 batches per epoch with mirroring). The paper itself states lr 5e-4 and 5000 epochs.
     "paper": Config(
-        data=DataConfig(fps=60.0, window=240, hop=120),
+        data=DataConfig(fps=60.0, window=240, hop=120, root_sigma_s=HOLDEN_ROOT_SIGMA_S),
         train=TrainConfig(
             steps=100_000, batch_size=40, lr=1.25e-5, eval_every=5000, checkpoint_every=5000
         ),
@@ -104,7 +105,7 @@ PRESETS: dict[str, Config] = {
     # The paper's stated optimiser instead (Adam lr 5e-4, 120k steps ~ its 5000 epochs) with
     # our defaults (a learned output variance, deterministic unpooling).
     "paper_stated": Config(
-        data=DataConfig(fps=60.0, window=240, hop=120),
+        data=DataConfig(fps=60.0, window=240, hop=120, root_sigma_s=HOLDEN_ROOT_SIGMA_S),
         train=TrainConfig(
             steps=120_000, batch_size=40, lr=5e-4, eval_every=5000, checkpoint_every=5000
         ),

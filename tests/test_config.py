@@ -45,6 +45,27 @@ def test_every_preset_round_trips_through_json(tmp_path, name):
         assert "window" in module.SCOPES or all(s.bound for s in module.SCOPES.values())
 
 
+def test_a_run_saved_before_root_smoothing_was_a_field_keeps_holdens_features(tmp_path):
+    """Runs saved before ``data.root_sigma_s`` existed were trained on features whose root
+    was smoothed over 0.05 s: loading one must keep that, not take today's default (its
+    standardiser and weights would then be scored on other features without a word)."""
+    module = _module("moglow")
+    config = module.PRESETS["quick"]
+    assert config.data.root_sigma_s == pytest.approx(1.0 / 3.0)
+    path = tmp_path / "config.json"
+    save_config(path, experiment=module.NAME, preset="quick", config=config)
+    assert load_config(path, module.Config)[2] == config
+    payload = json.loads(path.read_text())
+    del payload["config"]["data"]["root_sigma_s"]
+    path.write_text(json.dumps(payload))
+    old = load_config(path, module.Config)[2]
+    assert old.data.root_sigma_s == 0.05
+    assert old == dataclasses.replace(
+        config, data=dataclasses.replace(config.data, root_sigma_s=0.05)
+    )
+    assert module.PRESETS["paper"].data.root_sigma_s == 0.05  # the papers' data
+
+
 def test_overrides_dotted_bare_and_errors():
     import experiments.baselines as b
 

@@ -9,7 +9,7 @@ import pytest
 
 from motionflows.data import MotionDataError, Standardizer, load_dataset
 from motionflows.data.controls import PRESETS, load_control, preset
-from motionflows.data.features import Clip
+from motionflows.data.features import ROOT_SIGMA_S, Clip
 from motionflows.data.pipeline import make_windows
 
 
@@ -113,6 +113,22 @@ def test_cache_hit_is_identical(tmp_path):
     assert a.info["cache_file"] and list(tmp_path.glob("*.npz"))
     b = load_dataset("synthetic", n_clips=3, seconds=4.0, seed=2, window=20, cache_dir=tmp_path)
     np.testing.assert_array_equal(a.train.pose, b.train.pose)
+
+
+def test_root_smoothing_is_an_option_and_part_of_the_cache_key(tmp_path):
+    """The same clips with Holden's 0.05 s root smoothing are other features: a cached copy
+    of one must never answer for the other, and the dataset says which it holds."""
+    opts = dict(n_clips=3, seconds=6.0, seed=2, window=20, cache_dir=tmp_path)
+    ours = load_dataset("synthetic", **opts)
+    holden = load_dataset("synthetic", root_sigma_s=0.05, **opts)
+    assert len(list(tmp_path.glob("*.npz"))) == 2
+    assert (ours.info["root_sigma_s"], holden.info["root_sigma_s"]) == (ROOT_SIGMA_S, 0.05)
+    assert not np.allclose(ours.train.control, holden.train.control, atol=1e-4)
+    # the root travels alike; the gait cycle moves from the control into the pose
+    within = [d.train.control[..., 0].std(axis=1).mean() for d in (ours, holden)]
+    assert within[0] < within[1]
+    again = load_dataset("synthetic", root_sigma_s=0.05, **opts)
+    np.testing.assert_array_equal(again.train.control, holden.train.control)
 
 
 def test_errors_for_people(tmp_path, monkeypatch):

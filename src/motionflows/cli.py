@@ -104,9 +104,12 @@ def cmd_eval(args) -> int:
     return 0
 
 
-def _sample_controls(args, fps: float) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
+def _sample_controls(
+    args, fps: float, root_sigma_s: float
+) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
     """(name, control (T, 3) data units, ground-truth pose (T, 63) metres or None) for
-    ``--control``: a preset or .npy (no ground truth), a .bvh take or a folder of takes."""
+    ``--control``: a preset or .npy (no ground truth), a .bvh take or a folder of takes
+    (read with the run's root smoothing ``root_sigma_s``)."""
     from motionflows.data.controls import load_control
 
     text = str(args.control)
@@ -114,7 +117,7 @@ def _sample_controls(args, fps: float) -> list[tuple[str, np.ndarray, np.ndarray
     if path.suffix.lower() == ".bvh" or path.is_dir():
         from motionflows.data.takes import read_takes
 
-        clips, _ = read_takes(text, fps=fps, skeleton=args.skeleton)
+        clips, _ = read_takes(text, fps=fps, skeleton=args.skeleton, root_sigma_s=root_sigma_s)
         out = []
         for clip in clips:
             n = len(clip) if args.seconds is None else max(1, int(round(args.seconds * fps)))
@@ -171,7 +174,7 @@ def cmd_sample(args) -> int:
         )
     out = _output_folder(args, run_dir, "samples", run_dir / "samples")
     out.mkdir(parents=True, exist_ok=True)
-    for name, control, truth in _sample_controls(args, fps):
+    for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s):
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )

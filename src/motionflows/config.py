@@ -15,6 +15,8 @@ import types
 import typing
 from typing import Any
 
+from motionflows.data.features import HOLDEN_ROOT_SIGMA_S, ROOT_SIGMA_S
+
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
@@ -32,6 +34,7 @@ class DataConfig:
     synthetic_clips: int = 120
     synthetic_seconds: float = 12.0
     seed: int = 0
+    root_sigma_s: float = ROOT_SIGMA_S  # root smoothing, s (features.py; Holden's: 0.05)
 
     def __post_init__(self):
         _check_fields(self, DATA_LIMITS)
@@ -59,6 +62,7 @@ class DataConfig:
             n_clips=self.synthetic_clips,
             seconds=self.synthetic_seconds,
             seed=self.seed,
+            root_sigma_s=self.root_sigma_s,
         )
 
 
@@ -126,6 +130,7 @@ DATA_LIMITS: dict[str, _Limit] = {
     "hop": (1, INF, True, True),
     "synthetic_clips": (1, INF, True, True),
     "synthetic_seconds": (0.0, 3600.0, False, True),
+    "root_sigma_s": (0.0, 60.0, True, True),
 }
 TRAIN_LIMITS: dict[str, _Limit] = {
     "steps": (0, INF, True, True),
@@ -395,6 +400,15 @@ def read_config_json(path: Any) -> dict:
     return payload
 
 
+def _saved_before_root_sigma(values: dict) -> dict:
+    """A saved config whose ``data`` has no ``root_sigma_s`` was trained on the features of
+    that time, Holden's root smoothing: it keeps them (a copy with the field set)."""
+    data = values.get("data")
+    if isinstance(data, dict) and "root_sigma_s" not in data:
+        return {**values, "data": {**data, "root_sigma_s": HOLDEN_ROOT_SIGMA_S}}
+    return values
+
+
 def config_from_json(path: Any, cls: type, payload: dict | None = None) -> Any:
     """``cls`` rebuilt from the ``config`` of a ``config.json``; a bad field raises
     ``RunError`` naming the file and the field."""
@@ -402,7 +416,7 @@ def config_from_json(path: Any, cls: type, payload: dict | None = None) -> Any:
 
     payload = read_config_json(path) if payload is None else payload
     try:
-        return from_dict(cls, payload["config"])
+        return from_dict(cls, _saved_before_root_sigma(payload["config"]))
     except (ValueError, TypeError) as err:
         raise RunError(f"{path}: {err}; fix the field or train the run again") from None
 

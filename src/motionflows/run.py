@@ -187,7 +187,7 @@ def _takes(std, config, data: str, label: str | None, skeleton: str):
 
     takes = load_takes(
         data, fps=float(config.data.fps), window=int(config.data.window),
-        hop=int(config.data.hop), skeleton=skeleton,
+        hop=int(config.data.hop), skeleton=skeleton, root_sigma_s=config.data.root_sigma_s,
     )  # fmt: skip
     pose = np.asarray(std.normalize_pose(takes.windows.pose), np.float32)
     control = np.asarray(std.normalize_control(takes.windows.control), np.float32)

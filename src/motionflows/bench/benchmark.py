@@ -304,7 +304,7 @@ def _test_data(dataset, data_cfg: DataConfig, test_data: str | None, progress):
 
     takes = load_takes(
         test_data, fps=float(data_cfg.fps), window=int(data_cfg.window), hop=int(data_cfg.hop),
-        skeleton=data_cfg.skeleton,
+        skeleton=data_cfg.skeleton, root_sigma_s=data_cfg.root_sigma_s,
     )  # fmt: skip
     log(progress, f"test data: {len(takes.windows)} windows of {test_data}")
     return dataset.with_test(takes.windows, test_data=str(test_data)), {

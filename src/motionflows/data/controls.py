@@ -113,11 +113,13 @@ def load_control(
     fps: float = DEFAULT_FPS,
     *,
     skeleton="bandai",
+    root_sigma_s: float | None = None,
 ) -> np.ndarray:
     """A (T, 3) control in data units (m/frame, m/frame, rad/frame) from a preset name
     (needs ``seconds``), a ``.npy`` file holding a (T, 3) array, or a ``.bvh`` take (its own
     control track at ``fps``, exactly as :func:`motionflows.data.clip_from_bvh` computes it;
-    ``skeleton`` maps its joints).
+    ``skeleton`` maps its joints, ``root_sigma_s`` is the root smoothing in seconds, default
+    :data:`motionflows.data.features.ROOT_SIGMA_S`: give the model's own).
 
     With a file and ``seconds`` given, the control is cut or repeated-last-frame padded to
     ``round(seconds * fps)`` frames.
@@ -138,9 +140,10 @@ def load_control(
     if not p.exists():
         raise ValueError(f"control file {p} not found")
     if p.suffix.lower() == ".bvh":
-        from motionflows.data.features import clip_from_bvh
+        from motionflows.data.features import ROOT_SIGMA_S, clip_from_bvh
 
-        arr = clip_from_bvh(p, fps=fps, skeleton=skeleton).control
+        sigma = ROOT_SIGMA_S if root_sigma_s is None else root_sigma_s
+        arr = clip_from_bvh(p, fps=fps, skeleton=skeleton, root_sigma_s=sigma).control
     else:
         try:
             arr = np.load(p, allow_pickle=False)

@@ -22,7 +22,7 @@ import numpy as np
 
 from motionflows.data.augment import augment_clips
 from motionflows.data.clip_cache import PIPELINE_VERSION, cache_dir
-from motionflows.data.features import Clip
+from motionflows.data.features import ROOT_SIGMA_S, Clip
 from motionflows.data.names import DEFAULT_FPS, DEFAULT_WINDOW
 from motionflows.data.pipeline import (
     Standardizer,
@@ -369,6 +369,7 @@ def load_dataset(
     contents=None,
     cache: bool = True,
     cache_dir=None,
+    root_sigma_s: float = ROOT_SIGMA_S,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -390,6 +391,7 @@ def load_dataset(
         contents=contents,
         cache=cache,
         cache_dir=cache_dir,
+        root_sigma_s=root_sigma_s,
     )
     split_clips = _assign_takes(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
@@ -402,6 +404,7 @@ def load_dataset(
     info = {
         "source": name,
         "fps": float(fps),
+        "root_sigma_s": float(root_sigma_s),
         "window": int(window),
         "hop": int(hop),
         "split_by": split_by,

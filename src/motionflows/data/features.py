@@ -53,6 +53,10 @@ from motionflows.errors import MotionDataError
 ROOT_SIGMA_S = 1.0 / 3.0
 """Root smoothing (seconds): the facing's timescale, long enough to remove the gait cycle
 from the control (module docstring, step 3). Holden et al. used 0.05 s (3 frames at 60 fps)."""
+HOLDEN_ROOT_SIGMA_S = 0.05
+"""Holden et al.'s root smoothing (3 frames at 60 fps): the features of the MoGlow and VAE-LSTM
+papers' data, of the ``paper`` presets, and of every run saved before ``data.root_sigma_s``
+existed (2026-12-02)."""
 MAX_POSITION_M = 1000.0
 """Largest accepted |joint coordinate| in metres after unit conversion (1 km)."""
 MAX_RESAMPLED_FRAMES = 360_000

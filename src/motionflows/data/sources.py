@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from motionflows.data.clip_cache import _cached, _code_version, _hash
-from motionflows.data.features import Clip, clip_from_bvh
+from motionflows.data.features import ROOT_SIGMA_S, Clip, clip_from_bvh
 from motionflows.data.names import DEFAULT_FPS
 from motionflows.data.skeleton import SkeletonMapping, get_skeleton
 from motionflows.errors import MotionDataError
@@ -160,9 +160,12 @@ def _bandai_meta(name: str, manifest: dict[str, dict]) -> dict:
     return meta
 
 
-def _bvh_clips(files, fps, skeleton, source, meta_fn, manifest=None) -> list[Clip]:
+def _bvh_clips(files, fps, skeleton, meta_fn, manifest, root_sigma_s) -> list[Clip]:
     check_checksums(files, manifest or {})  # once, when the cache is built
-    return [clip_from_bvh(f, fps, skeleton, meta=meta_fn(f.stem)) for f in files]
+    return [
+        clip_from_bvh(f, fps, skeleton, meta=meta_fn(f.stem), root_sigma_s=root_sigma_s)
+        for f in files
+    ]
 
 
 def _bvh_meta(name: str, manifest: dict[str, dict]) -> dict:
@@ -177,14 +180,17 @@ def _bvh_meta(name: str, manifest: dict[str, dict]) -> dict:
 
 
 def _synthetic_source(
-    n_clips: int, seconds: float, seed: int, fps: float
+    n_clips: int, seconds: float, seed: int, fps: float, root_sigma_s: float
 ) -> tuple[dict, Callable[[], list[Clip]]]:
     """The cache key and the builder of the ``synthetic`` source's clips."""
     from motionflows.data import synthetic
 
     key = {"source": "synthetic", "n_clips": int(n_clips), "seconds": float(seconds),
-           "seed": int(seed), "fps": fps, "v": _code_version()}  # fmt: skip
-    return key, lambda: synthetic.generate(n_clips, seconds, seed, fps=fps)
+           "seed": int(seed), "fps": fps, "root_sigma_s": root_sigma_s,
+           "v": _code_version()}  # fmt: skip
+    return key, lambda: synthetic.generate(
+        n_clips, seconds, seed, fps=fps, root_sigma_s=root_sigma_s
+    )
 
 
 def _bandai_source(path) -> tuple[list[Path], SkeletonMapping, Callable[[str], dict], dict]:
@@ -248,13 +254,16 @@ def _bvh_key(
     fps: float,
     mapping: SkeletonMapping,
     meta_fn: Callable[[str], dict],
+    root_sigma_s: float,
 ) -> dict:
     """The cache key of BVH clips: the files (name, size, mtime), the folder(s), the frame
-    rate, the skeleton mapping, the code version and a hash of the takes' metadata."""
+    rate, the root smoothing, the skeleton mapping, the code version and a hash of the
+    takes' metadata."""
     return {"source": name, "files": _file_key(files),
             "folder": [str(d.resolve()) for d in folders] if len(folders) > 1
             else str(folders[0].resolve()),
-            "fps": fps, "skeleton": mapping.to_dict(), "v": _code_version(),
+            "fps": fps, "root_sigma_s": root_sigma_s, "skeleton": mapping.to_dict(),
+            "v": _code_version(),
             "meta": _hash([meta_fn(f.stem) for f in files])}  # fmt: skip
 
 
@@ -270,14 +279,16 @@ def load_clips(
     contents=None,
     cache: bool = True,
     cache_dir=None,
+    root_sigma_s: float = ROOT_SIGMA_S,
     **_ignored,
 ) -> tuple[list[Clip], dict]:
-    """The clips of a source (cached), and info about where they came from."""
+    """The clips of a source (cached), and info about where they came from. ``root_sigma_s``
+    is the root's smoothing in seconds (:data:`motionflows.data.features.ROOT_SIGMA_S`)."""
     if name not in SOURCES:
         raise ValueError(f"unknown dataset {name!r}; valid: {', '.join(SOURCES)}")
-    fps = float(fps)
+    fps, root_sigma_s = float(fps), float(root_sigma_s)
     if name == "synthetic":
-        key, build = _synthetic_source(n_clips, seconds, seed, fps)
+        key, build = _synthetic_source(n_clips, seconds, seed, fps, root_sigma_s)
         clips, cfile = _cached(key, build, cache=cache, directory=cache_dir)
         return clips, {"cache_file": cfile}
     if name == "bandai":
@@ -287,10 +298,10 @@ def load_clips(
     # _bvh_files and _cached warn with stacklevel=3 (the caller of this function): call them here
     files = sorted((f for d in folders for f in _bvh_files(d)), key=lambda f: f.name)
     files = _with_contents(files, contents, meta_fn, folders[0])
-    key = _bvh_key(name, files, folders, fps, mapping, meta_fn)
+    key = _bvh_key(name, files, folders, fps, mapping, meta_fn, root_sigma_s)
     clips, cfile = _cached(
         key,
-        lambda: _bvh_clips(files, fps, mapping, name, meta_fn, checksums),
+        lambda: _bvh_clips(files, fps, mapping, meta_fn, checksums, root_sigma_s),
         cache=cache,
         directory=cache_dir,
     )

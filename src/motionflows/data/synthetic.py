@@ -27,7 +27,13 @@ import dataclasses
 
 import numpy as np
 
-from motionflows.data.features import Clip, features_from_positions, gaussian_smooth, rotate_y
+from motionflows.data.features import (
+    ROOT_SIGMA_S,
+    Clip,
+    features_from_positions,
+    gaussian_smooth,
+    rotate_y,
+)
 from motionflows.data.names import DEFAULT_FPS, JOINT_NAMES, NUM_JOINTS
 
 SRC_FPS = 30.0
@@ -390,8 +396,10 @@ def generate(
     seed: int = 0,
     *,
     fps: float = DEFAULT_FPS,
+    root_sigma_s: float = ROOT_SIGMA_S,
 ) -> list[Clip]:
-    """``n_clips`` random locomotion clips of ``seconds`` each, as features at ``fps``.
+    """``n_clips`` random locomotion clips of ``seconds`` each, as features at ``fps`` (root
+    smoothed over ``root_sigma_s`` seconds, as real data).
 
     Deterministic in ``seed``. Each clip's ``meta`` holds its style parameters and
     ``performer`` (one of four synthetic "performers", by clip index) for performer splits.
@@ -412,8 +420,13 @@ def generate(
                 "style": {k: float(v) for k, v in style.items()}}  # fmt: skip
         clips.append(
             features_from_positions(
-                world, SRC_FPS, fps, name=f"synthetic_{seed}_{i:04d}", meta=meta
-            )
+                world,
+                SRC_FPS,
+                fps,
+                name=f"synthetic_{seed}_{i:04d}",
+                meta=meta,
+                root_sigma_s=root_sigma_s,
+            )  # fmt: skip
         )
     return clips
 

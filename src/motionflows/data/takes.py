@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from motionflows.data.features import Clip, clip_from_bvh
+from motionflows.data.features import ROOT_SIGMA_S, Clip, clip_from_bvh
 from motionflows.data.pipeline import WindowSet, make_windows
 from motionflows.errors import MotionDataError
 
@@ -61,26 +61,39 @@ def parse_spec(spec: str) -> tuple[str, Path | None]:
     return source, p
 
 
-def read_takes(spec: str, *, fps: float, skeleton: str = "bandai") -> tuple[list[Clip], str]:
-    """The clips of every take of ``spec`` at ``fps`` (see the module docstring) and a label."""
+def read_takes(
+    spec: str, *, fps: float, skeleton: str = "bandai", root_sigma_s: float = ROOT_SIGMA_S
+) -> tuple[list[Clip], str]:
+    """The clips of every take of ``spec`` at ``fps`` (see the module docstring), the root
+    smoothed over ``root_sigma_s`` seconds, and a label."""
     from motionflows.data.sources import load_clips
 
     source, path = parse_spec(spec)
     if path is not None and path.is_file():
-        return [clip_from_bvh(path, fps=fps, skeleton=skeleton)], path.stem
+        clip = clip_from_bvh(path, fps=fps, skeleton=skeleton, root_sigma_s=root_sigma_s)
+        return [clip], path.stem
     if source == "bandai":
-        clips, info = load_clips("bandai", path=path, fps=fps)
+        clips, info = load_clips("bandai", path=path, fps=fps, root_sigma_s=root_sigma_s)
         label = Path(info.get("path", "bandai")).name if path is not None else "bandai"
         return clips, label
-    clips, _ = load_clips("bvh", path=path, skeleton=skeleton, fps=fps)
+    clips, _ = load_clips("bvh", path=path, skeleton=skeleton, fps=fps, root_sigma_s=root_sigma_s)
     return clips, path.name
 
 
-def load_takes(spec: str, *, fps: float, window: int, hop: int, skeleton: str = "bandai") -> Takes:
+def load_takes(
+    spec: str,
+    *,
+    fps: float,
+    window: int,
+    hop: int,
+    skeleton: str = "bandai",
+    root_sigma_s: float = ROOT_SIGMA_S,
+) -> Takes:
     """Every complete ``window``-frame window (start every ``hop`` frames) of every take of
-    ``spec`` read at ``fps``. Takes shorter than one window are listed in ``skipped``; a
-    spec with no usable take raises ``MotionDataError``."""
-    clips, label = read_takes(spec, fps=fps, skeleton=skeleton)
+    ``spec`` read at ``fps`` with the root smoothed over ``root_sigma_s`` seconds (give the
+    run's own, ``config.data.root_sigma_s``). Takes shorter than one window are listed in
+    ``skipped``; a spec with no usable take raises ``MotionDataError``."""
+    clips, label = read_takes(spec, fps=fps, skeleton=skeleton, root_sigma_s=root_sigma_s)
     long_enough = [c for c in clips if len(c) >= window]
     skipped = [f"{c.name} ({len(c)} frames < {window})" for c in clips if len(c) < window]
     if not long_enough:
