@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motionflows.data.features import gaussian_smooth
+from motionflows.data.features import ROOT_SIGMA_S, clip_from_bvh, gaussian_smooth
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS
 
 WALK, RUN, BACK, SIDE = 1.1, 2.4, -0.85, 0.5  # m/s (Bandai dev-set means)
@@ -113,13 +113,13 @@ def load_control(
     fps: float = DEFAULT_FPS,
     *,
     skeleton="bandai",
-    root_sigma_s: float | None = None,
+    root_sigma_s: float = ROOT_SIGMA_S,
 ) -> np.ndarray:
     """A (T, 3) control in data units (m/frame, m/frame, rad/frame) from a preset name
     (needs ``seconds``), a ``.npy`` file holding a (T, 3) array, or a ``.bvh`` take (its own
     control track at ``fps``, exactly as :func:`motionflows.data.clip_from_bvh` computes it;
-    ``skeleton`` maps its joints, ``root_sigma_s`` is the root smoothing in seconds, default
-    :data:`motionflows.data.features.ROOT_SIGMA_S`: give the model's own).
+    ``skeleton`` maps its joints, ``root_sigma_s`` is the root smoothing in seconds: give the
+    model's own, ``config.data.root_sigma_s``).
 
     With a file and ``seconds`` given, the control is cut or repeated-last-frame padded to
     ``round(seconds * fps)`` frames.
@@ -140,10 +140,7 @@ def load_control(
     if not p.exists():
         raise ValueError(f"control file {p} not found")
     if p.suffix.lower() == ".bvh":
-        from motionflows.data.features import ROOT_SIGMA_S, clip_from_bvh
-
-        sigma = ROOT_SIGMA_S if root_sigma_s is None else root_sigma_s
-        arr = clip_from_bvh(p, fps=fps, skeleton=skeleton, root_sigma_s=sigma).control
+        arr = clip_from_bvh(p, fps=fps, skeleton=skeleton, root_sigma_s=root_sigma_s).control
     else:
         try:
             arr = np.load(p, allow_pickle=False)

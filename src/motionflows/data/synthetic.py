@@ -426,7 +426,7 @@ def generate(
                 name=f"synthetic_{seed}_{i:04d}",
                 meta=meta,
                 root_sigma_s=root_sigma_s,
-            )  # fmt: skip
+            )
         )
     return clips
 
