@@ -4,27 +4,16 @@ gait cycle, Holden's (root smoothed 0.05 s) does."""
 from __future__ import annotations
 
 import glob
-import importlib.util
-from pathlib import Path
 
 import pytest
 
 from motionflows.data.features import ROOT_SIGMA_S
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _module():
-    spec = importlib.util.spec_from_file_location(
-        "control_phase_sliding", ROOT / "benchmarks" / "control_phase_sliding.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_real_poses_out_of_phase_with_their_control_slide_only_with_holdens_root():
-    module = _module()
+def test_real_poses_out_of_phase_with_their_control_slide_only_with_holdens_root(
+    benchmark_script,
+):
+    module = benchmark_script("control_phase_sliding")
     files = sorted({f for g in module.DEFAULT_TAKES for f in glob.glob(g)})[::25]
     if not files:
         pytest.skip("needs ../shared/data (the Bandai takes)")
@@ -43,6 +32,6 @@ def test_real_poses_out_of_phase_with_their_control_slide_only_with_holdens_root
     )
 
 
-def test_no_takes_is_one_clear_error(tmp_path, capsys):
-    assert _module().main(["--takes", str(tmp_path / "*.bvh")]) == 2
+def test_no_takes_is_one_clear_error(benchmark_script, tmp_path, capsys):
+    assert benchmark_script("control_phase_sliding").main(["--takes", str(tmp_path / "*.bvh")]) == 2
     assert "no BVH take matches" in capsys.readouterr().err

@@ -2,30 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 from motionflows.data.synthetic import straight_walk
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def _module():
-    spec = importlib.util.spec_from_file_location(
-        "long_run_drift", ROOT / "benchmarks" / "long_run_drift.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_drift_table_sees_a_growing_skeleton_and_not_a_rigid_one():
+def test_drift_table_sees_a_growing_skeleton_and_not_a_rigid_one(benchmark_script):
     clip = straight_walk(1.2, seconds=6.0)
     pose, control = clip.pose[None], clip.control[None]
     t = pose.shape[1]
-    table = _module().drift_table
+    table = benchmark_script("long_run_drift").drift_table
     rigid = table(pose, control, fps=clip.fps, block=40, reference=20)
     assert len(rigid) == t // 40
     assert max(r["bone_error_m"] for r in rigid) < 0.005  # the synthetic skeleton is rigid
