@@ -12,8 +12,9 @@ poses of Bandai takes, cut into 4 s windows at 20 fps, placed on
 * the window's mean control (a control without the gait cycle),
 
 for each root smoothing ``sigma`` (seconds), with the calibrated contact rule of
-:func:`motionflows.evaluation.motion.foot_sliding`. Prints one JSON object per sigma, then
-a summary line. Used for docs/readme/moglow_quality.md (the sliding study)::
+:func:`motionflows.evaluation.motion.foot_sliding`. Prints a JSON line naming the takes,
+the machine and its load, then one JSON object per sigma. Used for
+docs/readme/moglow_quality.md (the sliding study)::
 
     python benchmarks/control_phase_sliding.py                      # the unseen performer D2-C
     python benchmarks/control_phase_sliding.py --takes 'DIR/*.bvh' --sigmas 0.05,0.333
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from motionflows.data.features import ROOT_SIGMA_S, clip_from_bvh
+from motionflows.data.pipeline import make_windows
 from motionflows.evaluation.motion import contact_rate, foot_sliding, skate_ratio
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -42,18 +44,11 @@ DEFAULT_TAKES = (
 FPS, WINDOW, HOP = 20.0, 80, 10
 
 
-def windows(clips, key: str) -> np.ndarray:
-    """(N, WINDOW, C): every complete window of every clip, hop HOP."""
-    out = [
-        getattr(c, key)[s : s + WINDOW] for c in clips for s in range(0, len(c) - WINDOW + 1, HOP)
-    ]
-    return np.stack(out)
-
-
 def measure(files, sigma: float, shifts) -> dict:
     """Sliding (m/s) and skate ratio of real poses on their own, shifted and mean controls."""
     clips = [clip_from_bvh(f, FPS, root_sigma_s=sigma) for f in files]
-    pose, control = windows(clips, "pose"), windows(clips, "control")
+    cut, _ = make_windows(clips, WINDOW, HOP, short="drop")  # complete windows, as the bench's
+    pose, control = np.asarray(cut.pose, np.float64), np.asarray(cut.control, np.float64)
 
     def scores(p, c):
         return {

@@ -11,7 +11,7 @@ Recipe (FEATURES.md, Holden et al. 2016 with the two documented fixes), for worl
    control says only where the character travels, as a user's control (a game pad, a
    preset path) does. With 0.05 s the control oscillates with the stride, and a motion whose
    stride phase differs from the control's slides its planted feet by the oscillation
-   (real poses on their own control shifted by 5 frames slide at 0.35 m/s, 5.5x their 0.064
+   (real poses on their own control shifted by 5 frames slide at 0.35 m/s, 5.5x their 0.065
    m/s; with 1/3 s, 0.10 m/s; docs/readme/moglow_quality.md).
 4. Facing: ``across = (LeftArm - RightArm) + (LeftUpLeg - RightUpLeg)`` (floor-projected,
    normalised), ``forward = across x (0, 1, 0)``, ``yaw[t] = atan2(forward.x, forward.z)``
