@@ -25,7 +25,7 @@ from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
-from motionflows.models.glow import PRIORS, Glow
+from motionflows.models.glow import COUPLINGS, PRIORS, Glow
 from motionflows.models.validation import check_sample_args
 
 NAME = "glow_fixed"
@@ -46,6 +46,7 @@ class Config:
     conditional: bool = True  # condition on the control signal (False = unconditional)
     prior: str = "standard"  # "standard" (paper) or "learned" (glow-pytorch split prior)
     compute_dtype: str = "float32"  # coupling nets' conv precision: "float32" | "bfloat16"
+    coupling: str = "affine"  # "affine" (paper) | "additive" (volume-preserving, never amplifies)
     coupling_eps: float = 1e-6  # floor of the affine coupling scale
 
     def __post_init__(self):
@@ -61,6 +62,8 @@ class Config:
             )
         if self.prior not in PRIORS:
             raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
+        if self.coupling not in COUPLINGS:
+            raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
                 f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}"
@@ -119,11 +122,14 @@ PRESETS: dict[str, Config] = {
     ),
 }
 # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md has the search):
-# the quick flow (L = 2, K = 8, width 128) on the 4 s windows the bench scores, 3x longer.
+# the quick flow (L = 2, K = 8, width 128) on the 4 s windows the bench scores, 12000 steps
+# (30.5 min on the idle 2-core EPYC) with additive couplings: the affine coupling's scale
+# lies in (eps, 1 + eps), so sampling can only amplify, and 3-4 % of the affine model's
+# samples on the unseen performer blew up; additive: none of 256 (docs/readme/glow.md).
 PRESETS["cpu"] = Config(
     data=DataConfig(window=80, hop=10, mirror=True),
     train=TrainConfig(
-        steps=6000,
+        steps=12000,
         batch_size=32,
         lr=1e-3,
         warmup_steps=200,
@@ -139,6 +145,7 @@ PRESETS["cpu"] = Config(
     levels=2,
     K=8,
     hidden=128,
+    coupling="additive",
 )
 # Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
 PRESETS["smoke"] = dataclasses.replace(
@@ -167,6 +174,7 @@ def build(config: Config, *, key: jax.Array) -> Glow:
         control_dim=CONTROL_DIM if config.conditional else 0,
         prior=config.prior,
         compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
+        coupling=config.coupling,
         coupling_eps=config.coupling_eps,
         length=config.data.window,
         rngs=nnx.Rngs(params=key),

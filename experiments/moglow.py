@@ -54,6 +54,7 @@ class Config:
     residual: bool = False  # flow x_t - x_{t-1} (our option; see MoGlow's docstring)
     dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (an ablation)
     history_noise: float = 0.0  # std of training noise on the history poses (standardised)
+    residual_world: bool = False  # residual taken in the world: planted feet change by 0
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -68,6 +69,8 @@ class Config:
             )
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
+        if self.residual_world and not self.residual:
+            raise ValueError("residual_world=True needs residual=True (--set residual=true)")
         if not self.history_noise >= 0.0:
             raise ValueError(f"history_noise must be >= 0, got {self.history_noise}")
         if self.compute_dtype not in ("float32", "bfloat16"):
@@ -214,13 +217,24 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         residual=config.residual,
         dropout_keeps_last=config.dropout_keeps_last,
         history_noise=config.history_noise,
+        residual_world=config.residual_world,
         rngs=key,
     )
 
 
-def initialize(model: MoGlow, batch: dict, *, key: jax.Array) -> MoGlow:
-    """Data-dependent ActNorm initialisation on one batch (pure: returns a new model)."""
+def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None) -> MoGlow:
+    """Data-dependent initialisation on one batch (pure: returns a new model): with
+    ``residual_world`` the standardiser's units first (``MoGlow.with_units``; the training
+    loop passes the run's ``standardizer``), then ActNorm."""
     del key
+    if model.residual_world:
+        if standardizer is None:
+            raise ValueError(
+                "a residual_world MoGlow needs the run's standardizer to initialise "
+                "(initialize(model, batch, key=..., standardizer=dataset.standardizer))"
+            )
+        s = standardizer
+        model = model.with_units(s.pose_mean, s.pose_std, s.control_mean, s.control_std)
     return initialize_from_data(model, batch["pose"], context=batch["control"])
 
 

@@ -11,6 +11,7 @@ from motionflows.data import clip_from_bvh
 from motionflows.data.augment import mirror_clip, reverse_clip, reverse_time
 from motionflows.data.features import (
     ROOT_SIGMA_S,
+    carry_to_next_root,
     features_from_positions,
     integrate_control,
     resample,
@@ -200,3 +201,32 @@ def test_pseudo_fingertip_follows_forearm_and_is_not_a_copy():
     assert back.control[:, 0].mean() * 20 < -0.5
     run = clip_from_bvh(DEV / "dataset-2_run_normal_001.bvh", fps=60.0)
     assert run.fps == 60.0 and run.control[:, 0].mean() * 60 > 1.8
+
+
+def test_carry_to_next_root_keeps_joints_still_in_the_world():
+    """Poses built frame by frame with carry_to_next_root stand still in the world on their
+    control (to_global gives frame 0 at every frame), while a turning, sideways control
+    moves the root: the carry undoes exactly the root's move and turn."""
+    from motionflows.evaluation.motion import to_global
+
+    rng = np.random.default_rng(0)
+    t = 7
+    control = np.stack(
+        [rng.uniform(0.02, 0.1, t), rng.uniform(-0.03, 0.03, t), rng.uniform(-0.2, 0.2, t)], -1
+    )
+    pose = [rng.normal(size=NUM_JOINTS * 3)]
+    for i in range(1, t):
+        pose.append(carry_to_next_root(pose[-1], control[i - 1]))
+    pose = np.stack(pose)
+    world = to_global(pose, control)
+    np.testing.assert_allclose(world, np.repeat(world[:1], t, 0), atol=1e-12)
+    assert np.abs(np.diff(pose, axis=0)).max() > 0.05  # the root-frame poses did change
+    # heights are never touched; jax arrays give the same
+    np.testing.assert_array_equal(pose[:, 1::3], np.repeat(pose[:1, 1::3], t, 0))
+    import jax.numpy as jnp
+
+    np.testing.assert_allclose(
+        np.asarray(carry_to_next_root(jnp.asarray(pose[:-1]), jnp.asarray(control[:-1]))),
+        pose[1:],
+        atol=1e-5,
+    )

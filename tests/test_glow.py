@@ -37,11 +37,11 @@ def _perturb(model, key, scale=0.1):
     return nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves), rest)
 
 
-def _tiny(key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard"):
+def _tiny(key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard", coupling="affine"):
     k1, k2 = jax.random.split(key)
     model = Glow(
         pose_dim, levels=2, K=2, hidden=8, control_dim=control_dim, prior=prior,
-        rngs=nnx.Rngs(k1),
+        coupling=coupling, rngs=nnx.Rngs(k1),
     )  # fmt: skip
     return _perturb(model, k2)
 
@@ -72,6 +72,12 @@ def unconditional():
     return _tiny(jax.random.key(12), control_dim=0)
 
 
+@pytest.fixture(scope="module")
+def additive():
+    """Conditional, standard prior, additive couplings; perturbed."""
+    return _tiny(jax.random.key(13), coupling="additive")
+
+
 def test_round_trip_and_init(conditional, key):
     model = conditional
     kx, kc, kz = jax.random.split(key, 3)
@@ -96,13 +102,14 @@ def test_round_trip_and_init(conditional, key):
     np.testing.assert_array_equal(parts[0][:, :, 0], z[:, 0 : 4 * 63 : 63])
 
 
-@pytest.mark.parametrize("which", ["conditional", "unconditional"])
+@pytest.mark.parametrize("which", ["conditional", "unconditional", "additive"])
 def test_log_prob_matches_jacobian(which, request, key):
     """log p(x) = log N(f^-1(x)) + log|det J| with J from jax.jacfwd over the flat window.
 
-    Both fixtures (learned prior with control; standard prior without) have perturbed,
-    non-trivial parameters. D = 63 is odd: the coupling halves of the squeezed 126 channels
-    are 63 / 63 and so are the split's kept / factored parts.
+    The fixtures (learned prior with control; standard prior without; additive couplings
+    with control and the standard prior) have perturbed, non-trivial parameters. D = 63 is
+    odd: the coupling halves of the squeezed 126 channels are 63 / 63 and so are the split's
+    kept / factored parts.
     """
     model = request.getfixturevalue(which)
     t, d = 4, POSE_DIM
@@ -129,6 +136,27 @@ def test_log_prob_matches_jacobian(which, request, key):
     np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(fwd_log_det, -log_det, rtol=1e-4, atol=5e-3)
+
+
+def test_additive_couplings_preserve_volume(additive, key):
+    """With additive couplings only ActNorm and the 1x1 maps scale: the flow's log-det is
+    the same for every window and control (the affine Glow's is not), and a latent -> data
+    pass cannot amplify a latent through a small coupling scale."""
+    kx, kc = jax.random.split(key)
+    x = jax.random.normal(kx, (4, 8, POSE_DIM)) * jnp.array([0.5, 1.0, 2.0, 4.0])[:, None, None]
+    c = jax.random.normal(kc, (4, 8, CONTROL_DIM))
+
+    @jax.jit
+    def log_dets(model, x, c):
+        return model.inverse_and_log_det(x, context=c)[1]
+
+    ld = np.asarray(log_dets(additive, x, c))
+    np.testing.assert_allclose(ld, ld[0], rtol=1e-6, atol=1e-4)
+    assert abs(float(ld[0])) > 1.0  # ActNorm / 1x1 are non-trivial
+    affine = _tiny(jax.random.key(13), coupling="affine")  # same prior, same draws
+    assert np.ptp(np.asarray(log_dets(affine, x, c))) > 1e-2
+    couplings = [type(b).__name__ for b in additive.flows[0].step(0).bijectors]
+    assert "AdditiveCoupling" in couplings, couplings
 
 
 def test_glow_is_a_transformed_standard_normal(conditional, key):
@@ -200,6 +228,10 @@ def test_clear_errors(conditional, unconditional, key):
         dataclasses.replace(glow_fixed.PRESETS["quick"], levels=6)
     with pytest.raises(ValueError, match="prior"):
         Glow(levels=1, K=1, hidden=4, prior="laplace", rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="coupling must be one of"):
+        Glow(levels=1, K=1, hidden=4, coupling="spline", rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="coupling must be one of"):
+        dataclasses.replace(glow_fixed.PRESETS["quick"], coupling="spline")
 
 
 def test_unconditional_sampling(unconditional, key):

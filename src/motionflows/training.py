@@ -320,7 +320,10 @@ class _Loop:
                 runs.truncate_metrics(run_dir, -1)
             if hasattr(self.module, "initialize"):
                 first = self.dataset.batch("train", tc.batch_size, seed=tc.seed, index=0)
-                model = self.module.initialize(model, first, key=self.keys["init"])
+                extra = {}
+                if "standardizer" in inspect.signature(self.module.initialize).parameters:
+                    extra["standardizer"] = self.dataset.standardizer
+                model = self.module.initialize(model, first, key=self.keys["init"], **extra)
             graphdef, params, rest = nnx.split(model, nnx.Param, ...)
             opt_state = self.optimizer.init(params)
         # the guard too: a guard off the mesh would make the second step compile again

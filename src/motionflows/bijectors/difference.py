@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 
@@ -21,12 +23,29 @@ class Difference(Bijector):
     (the Jacobian is unit lower block-triangular). Frame steps carry the previous data
     frame x_{t-1} (..., D), zero from ``initial_carry``; start a carry from a known frame
     instead (a seed history) by passing it as ``carry``. No parameters.
+
+    ``move(x_prev, context_t) -> (..., D)``, optional: the change is taken from the previous
+    frame *moved* by the frame's context, u_t = x_t - move(x_{t-1}, context_t) (MoGlow's
+    ``residual_world`` moves the previous pose into the current root frame, so a joint at
+    rest in the world has u_t = 0). Any function of x_{t-1} and the context keeps the
+    Jacobian unit triangular: log|det| = 0. The latent -> data sequence pass is then a
+    ``lax.scan`` over frames instead of a cumulative sum.
     """
 
-    def __init__(self, num_channels: int):
+    def __init__(self, num_channels: int, move: Callable[[Array, Array], Array] | None = None):
         if int(num_channels) < 1:
             raise ValueError(f"Difference needs num_channels >= 1, got {num_channels}")
+        if move is not None and not callable(move):
+            raise ValueError(f"Difference: move must be callable, got {type(move).__name__}")
         self.num_channels = int(num_channels)
+        self.move = move
+
+    def _moved(self, previous: Array, context: Array | None) -> Array:
+        if self.move is None:
+            return previous
+        if context is None:
+            raise ValueError("Difference with move needs the context (context_t) of each frame")
+        return self.move(previous, context)
 
     def _zero(self, x: Array) -> Array:
         return jnp.zeros(x.shape[:-2], jnp.float32)
@@ -34,11 +53,23 @@ class Difference(Bijector):
     def inverse_and_log_det(self, y, *, context=None):
         check_event(y, self.num_channels, "Difference")
         previous = jnp.concatenate([jnp.zeros_like(y[..., :1, :]), y[..., :-1, :]], axis=-2)
-        return y - previous, self._zero(y)
+        return y - self._moved(previous, context), self._zero(y)
 
     def forward_and_log_det(self, x, *, context=None):
         check_event(x, self.num_channels, "Difference")
-        return jnp.cumsum(x, axis=-2), self._zero(x)
+        if self.move is None:
+            return jnp.cumsum(x, axis=-2), self._zero(x)
+        if context is None:
+            raise ValueError("Difference with move needs the context (..., T, C) of each frame")
+
+        def body(previous, inputs):
+            u_t, c_t = inputs
+            y_t = u_t + self.move(previous, c_t)
+            return y_t, y_t
+
+        frames_first = (jnp.moveaxis(x, -2, 0), jnp.moveaxis(context, -2, 0))
+        _, y = jax.lax.scan(body, jnp.zeros_like(x[..., 0, :]), frames_first)
+        return jnp.moveaxis(y, 0, -2), self._zero(x)
 
     def initial_carry(self, batch_shape=()):
         """The frame before frame 0: zeros (*batch_shape, D)."""
@@ -53,9 +84,9 @@ class Difference(Bijector):
         return self.initial_carry(u_t.shape[:-1]) if carry is None else carry
 
     def inverse_step(self, y_t, *, context_t=None, carry=None):
-        previous = self._check(y_t, carry)
+        previous = self._moved(self._check(y_t, carry), context_t)
         return y_t - previous, jnp.zeros(y_t.shape[:-1], jnp.float32), y_t
 
     def forward_step(self, x_t, *, context_t=None, carry=None):
-        y_t = x_t + self._check(x_t, carry)
+        y_t = x_t + self._moved(self._check(x_t, carry), context_t)
         return y_t, jnp.zeros(x_t.shape[:-1], jnp.float32), y_t

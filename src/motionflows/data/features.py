@@ -292,6 +292,27 @@ def integrate_root(control: Any) -> tuple[Any, Any]:
     return xp.stack([x, xp.zeros_like(x), z], axis=-1), yaw
 
 
+def carry_to_next_root(pose: Any, control: Any) -> Any:
+    """Root-frame poses of frame t-1 as they would read in frame t's root frame if every
+    joint stayed where it is in the world (a planted foot does).
+
+    pose (..., 63) at frame t-1 and control (..., 3) = c_{t-1} (the move t-1 -> t, see
+    :func:`integrate_root`) -> (..., 63). Per joint, with d = (sideways, 0, forward)::
+
+        l' = R_y(-turn) (l - d)
+
+    so that ``to_global`` of l' at frame t equals ``to_global`` of l at frame t-1. Works on
+    numpy and jax arrays (traced too).
+    """
+    xp = array_module(pose)
+    j = pose.reshape(pose.shape[:-1] + (NUM_JOINTS, 3))
+    forward, sideways, turn = control[..., 0:1], control[..., 1:2], control[..., 2:3]
+    x, z = j[..., 0] - sideways, j[..., 2] - forward
+    cos, sin = xp.cos(turn), xp.sin(turn)
+    moved = xp.stack([x * cos - z * sin, j[..., 1], x * sin + z * cos], axis=-1)
+    return moved.reshape(pose.shape)
+
+
 def integrate_control(
     control: np.ndarray, *, yaw0: float = 0.0, start: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

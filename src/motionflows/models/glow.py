@@ -43,6 +43,7 @@ from flax import nnx
 
 from motionflows.bijectors import (
     ActNorm,
+    AdditiveCoupling,
     AffineCoupling,
     Chain,
     InvertibleLinear,
@@ -62,6 +63,7 @@ Array = jax.Array
 __all__ = ["Glow", "standard_normal_log_prob"]
 
 PRIORS = ("standard", "learned")
+COUPLINGS = ("affine", "additive")
 
 
 def standard_normal_log_prob(z: Array) -> Array:
@@ -94,7 +96,10 @@ class Glow(nnx.Module):
       conditional: shorthand; False forces control_dim = 0 (None: decided by control_dim).
       prior: "standard" (paper) or "learned" (glow-pytorch's conditional split prior).
       compute_dtype: None/"float32", or "bfloat16" for the coupling nets' convolutions.
-      coupling_eps: floor of the coupling scale (see ``AffineCoupling``).
+      coupling: "affine" (paper: ``AffineCoupling``, whose scale lies in (eps, 1 + eps), so
+        the latent -> data direction can only amplify) or "additive" (``AdditiveCoupling``,
+        volume-preserving: only ActNorm and the 1x1 maps scale a sample).
+      coupling_eps: floor of the affine coupling scale (see ``AffineCoupling``).
       length: the window length T that unconditional ``sample`` draws by default (a
         multiple of 2**levels; None = 80 frames, 4 s at 20 fps); ``log_prob`` accepts any
         such T.
@@ -115,6 +120,7 @@ class Glow(nnx.Module):
         conditional: bool | None = None,
         prior: str = "standard",
         compute_dtype: Any = None,
+        coupling: str = "affine",
         coupling_eps: float = 1e-6,
         length: int | None = None,
         rngs: nnx.Rngs,
@@ -132,6 +138,8 @@ class Glow(nnx.Module):
             raise ValueError(f"Glow needs pose_dim >= 1, got {pose_dim}")
         if prior not in PRIORS:
             raise ValueError(f"Glow: prior must be one of {PRIORS}, got {prior!r}")
+        if coupling not in COUPLINGS:
+            raise ValueError(f"Glow: coupling must be one of {COUPLINGS}, got {coupling!r}")
         self.pose_dim = int(pose_dim)
         self.levels = int(levels)
         self.K = int(K)
@@ -139,6 +147,7 @@ class Glow(nnx.Module):
         self.control_dim = int(control_dim or 0)
         self.prior = prior
         self.compute_dtype = _normalize_dtype(compute_dtype)
+        self.coupling = coupling
         self.coupling_eps = float(coupling_eps)
         self.length = DEFAULT_WINDOW if length is None else int(length)  # default sample T
         if length is not None:
@@ -172,11 +181,12 @@ class Glow(nnx.Module):
         hidden, eps, dtype = self.hidden, self.coupling_eps, self.compute_dtype
         n_a = channels // 2
         n_b = channels - n_a
+        additive = self.coupling == "additive"
 
         def make(rngs: nnx.Rngs):
             net = ConvNet(
                 n_a,
-                2 * n_b,
+                n_b if additive else 2 * n_b,
                 hidden,
                 context_features=context_channels,
                 compute_dtype=dtype,
@@ -187,7 +197,9 @@ class Glow(nnx.Module):
                 [
                     ActNorm(channels),
                     InvertibleLinear(channels, rngs=rngs),
-                    AffineCoupling(channels, net, eps=eps),
+                    AdditiveCoupling(channels, net)
+                    if additive
+                    else AffineCoupling(channels, net, eps=eps),
                 ]
             )
 

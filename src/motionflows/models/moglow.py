@@ -67,10 +67,12 @@ from motionflows.bijectors import (
     Bijector,
     Chain,
     Difference,
+    Fixed,
     InvertibleLinear,
     Scan,
     coupling_sizes,
 )
+from motionflows.data.features import carry_to_next_root
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, StudentT
@@ -231,6 +233,13 @@ class MoGlow(nnx.Module):
         frames (our option, an ablation of the long-run drift of ``residual`` models: at
         the `cpu` size it improves the NLL by ~20 nats/frame but worsens rollouts; see
         docs/readme/moglow_quality.md#long-runs-drift).
+      residual_world: with ``residual``, the change is taken in the world: the previous pose
+        is first carried into frame t's root frame by the control c_{t-1}
+        (:func:`motionflows.data.features.carry_to_next_root`), u_t = x_t - carry(x_{t-1}),
+        so a joint at rest in the world (a planted foot) has u_t = 0 instead of minus the
+        root's motion. Still a shift by a function of the history and the controls: log-det
+        0. Needs D = 63, C = 3 and the standardiser's statistics (:meth:`with_units`; the
+        defaults, mean 0 and std 1, mean the data are in metres and m/frame, rad/frame).
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -259,6 +268,7 @@ class MoGlow(nnx.Module):
         residual: bool = False,
         dropout_keeps_last: bool = False,
         history_noise: float = 0.0,
+        residual_world: bool = False,
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -278,6 +288,13 @@ class MoGlow(nnx.Module):
                 f"MoGlow needs tau >= 1, K >= 1, pose_dim >= 2; got tau={tau}, "
                 f"K={K}, pose_dim={pose_dim}"
             )
+        if residual_world and not residual:
+            raise ValueError("residual_world=True needs residual=True (it changes what is flowed)")
+        if residual_world and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
+            raise ValueError(
+                f"residual_world needs the motion features (pose_dim={POSE_DIM} joint "
+                f"positions, control_dim={CONTROL_DIM} root moves), got {pose_dim}, {control_dim}"
+            )
         if compute_dtype is not None:
             compute_dtype = jnp.dtype(compute_dtype).name
         self.pose_dim = int(pose_dim)
@@ -295,6 +312,14 @@ class MoGlow(nnx.Module):
         self.residual = bool(residual)
         self.dropout_keeps_last = bool(dropout_keeps_last)
         self.history_noise = float(history_noise)
+        self.residual_world = bool(residual_world)
+        if self.residual_world:  # [pose mean, pose std, control mean, control std]
+            self.units = Fixed(
+                jnp.concatenate(
+                    [jnp.zeros(pose_dim), jnp.ones(pose_dim), jnp.zeros(control_dim),
+                     jnp.ones(control_dim)]
+                ).astype(jnp.float32)
+            )  # fmt: skip
         self.cond_dim = self.tau * self.pose_dim + (self.tau + 1) * self.control_dim
         if not isinstance(rngs, nnx.Rngs):
             rngs = nnx.Rngs(rngs)
@@ -308,6 +333,41 @@ class MoGlow(nnx.Module):
             self.eps,
         )
         self.flow = Scan(factory, self.K, rngs=rngs)
+
+    # -- the residual's previous pose
+
+    def with_units(self, pose_mean, pose_std, control_mean, control_std) -> MoGlow:
+        """A copy whose ``residual_world`` carry works in these units: the standardiser's
+        per-channel means and stds of poses (D,) (metres) and controls (C,). Pure."""
+        if not self.residual_world:
+            raise ValueError("MoGlow.with_units is only for residual_world models")
+        parts = [np.asarray(a, np.float32).reshape(-1) for a in
+                 (pose_mean, pose_std, control_mean, control_std)]  # fmt: skip
+        sizes = [self.pose_dim, self.pose_dim, self.control_dim, self.control_dim]
+        if [p.size for p in parts] != sizes or not all(np.isfinite(p).all() for p in parts):
+            raise ValueError(f"MoGlow.with_units: need finite arrays of sizes {sizes}")
+        if (parts[1] <= 0).any() or (parts[3] <= 0).any():
+            raise ValueError("MoGlow.with_units: stds must be positive")
+        model = nnx.clone(self)
+        model.units[...] = jnp.asarray(np.concatenate(parts))
+        return model
+
+    def _carry_previous(self, previous: Array, cond: Array) -> Array:
+        """``residual_world``: x_{t-1} (..., D) carried into frame t's root frame by c_{t-1},
+        read from cond (..., cond_dim) (the controls there are never dropped); standardised
+        in and out."""
+        d, c, tau = self.pose_dim, self.control_dim, self.tau
+        units = jax.lax.stop_gradient(self.units[...])
+        p_mean, p_std = units[:d], units[d : 2 * d]
+        c_mean, c_std = units[2 * d : 2 * d + c], units[2 * d + c :]
+        start = tau * d + (tau - 1) * c  # c_{t-1}: the last history control
+        control = c_mean + c_std * cond[..., start : start + c]
+        moved = carry_to_next_root(p_mean + p_std * previous, control)
+        return (moved - p_mean) / p_std
+
+    def _difference(self) -> Difference:
+        """The ``residual`` map: x_t - x_{t-1}, or with ``residual_world`` the carried one."""
+        return Difference(self.pose_dim, self._carry_previous if self.residual_world else None)
 
     # -- validation
 
@@ -388,7 +448,7 @@ class MoGlow(nnx.Module):
         if self.residual:  # the changes x_t - x~_{t-1} of the target frames (log-det 0),
             # by the sampler's own Difference frame step, every target frame at once
             previous = previous_frames(history, self.tau, scope)
-            targets = Difference(self.pose_dim).inverse_step(targets, carry=previous)[0]
+            targets = self._difference().inverse_step(targets, context_t=cond, carry=previous)[0]
         return self.flow.inverse_and_log_det(targets, context=cond)
 
     def log_prob(
@@ -435,7 +495,7 @@ class MoGlow(nnx.Module):
         then, with ``residual``, a :class:`~motionflows.bijectors.Difference` (x_t = u_t +
         x_{t-1}). Its ``forward_step`` samples a frame, its ``inverse_step`` scores one."""
         if self.residual:
-            return Chain([self.flow, Difference(self.pose_dim)])
+            return Chain([self.flow, self._difference()])
         return self.flow
 
     def initial_carry(self, batch: int):
