@@ -120,13 +120,15 @@ PRESETS: dict[str, Config] = {
         iwae_samples=(1, 10, 100),
     ),
     # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md): the quick
-    # model trained 4x longer with a decaying learning rate, sampled from the model it
-    # trains (a latent per pooled step): Algorithm 1's samples barely vary (4 mm under one
-    # control on the unseen performer, 33 mm with "prior", natural 29 mm; docs/readme/vae_lstm.md).
+    # model trained 16x longer with a decaying learning rate (17 min on the idle EPYC;
+    # 6000 steps slid 13 % more with a 17 % higher pose FD on the unseen performer), sampled
+    # from the model it trains (a latent per pooled step): Algorithm 1's samples barely
+    # vary (4 mm under one control on the unseen performer, 33 mm with "prior", natural
+    # 29 mm; docs/readme/vae_lstm.md).
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10),
         train=TrainConfig(
-            steps=6000, batch_size=32, lr=1e-3, warmup_steps=100, schedule="cosine",
+            steps=24_000, batch_size=32, lr=1e-3, warmup_steps=100, schedule="cosine",
             min_lr_ratio=0.05, eval_every=1000, eval_batches=4, log_every=50,
             checkpoint_every=1000,
         ),

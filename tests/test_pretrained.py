@@ -130,8 +130,11 @@ def test_pretrained_names_and_cli(exported, monkeypatch, tmp_path, capsys):
     assert "T0.7" in npz.name  # the validated temperature is the default
     code = cli.main(["eval", "pretrained:nope"])
     assert code == 2 and "no pretrained model 'nope'" in capsys.readouterr().err
-    code = cli.main(["export", "pretrained:moglow-tiny", "--out", str(tmp_path / "copy")])
+    code = cli.main(["export", "pretrained:moglow-tiny", "--out", str(tmp_path / "copy"),
+                     "--temperature", "0.6", "--notes", "trained on the tiny set"])  # fmt: skip
     assert code == 0 and (tmp_path / "copy" / "config.json").is_file()
+    info = json.loads((tmp_path / "copy" / "pretrained.json").read_text())
+    assert info["notes"] == "trained on the tiny set" and info["temperature"] == 0.6
 
 
 def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, capsys):

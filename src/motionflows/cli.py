@@ -297,6 +297,7 @@ def cmd_export(args) -> int:
         checkpoint=args.checkpoint,
         temperature=args.temperature,
         overwrite=args.overwrite,
+        notes=args.notes,
     )
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     print(f"wrote {out} ({size / 1e6:.1f} MB, no optimiser state)", file=sys.stderr)
@@ -430,6 +431,7 @@ def _add_export(sub) -> None:
         "--temperature", type=float, default=None, help="validated sampling temperature to store"
     )
     p.add_argument("--overwrite", action="store_true", help="replace an existing export")
+    p.add_argument("--notes", default=None, help="text stored as pretrained.json's notes")
     p.set_defaults(func=cmd_export)
 
 
