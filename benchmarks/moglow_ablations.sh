@@ -27,6 +27,7 @@ declare -A SETS=(
   [res-noise0.01]="residual=true history_noise=0.01"
   [res-noise0.003]="residual=true history_noise=0.003"
   [res-noise0.03-world]="residual=true history_noise=0.03 residual_world=true"
+  [res-noise0.03-reverse]="residual=true history_noise=0.03 data.reverse=true"
 )
 names=("$@")
 [ ${#names[@]} -eq 0 ] && names=(all residual res-dropout0 res-K8 res-hidden256 res-dropout0.95 res-ff res-tau5 res-studentt res-bf16 dropout0 res-tau20)
