@@ -120,7 +120,7 @@ PRESETS: dict[str, Config] = {
         iwae_samples=(1, 10, 100),
     ),
     # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md): the quick
-    # model trained 16x longer with a decaying learning rate (17 min on the idle EPYC;
+    # model trained 16x longer with a decaying learning rate (16 min on the idle EPYC;
     # 6000 steps slid 13 % more with a 17 % higher pose FD on the unseen performer), sampled
     # from the model it trains (a latent per pooled step): Algorithm 1's samples barely
     # vary (4 mm under one control on the unseen performer, 33 mm with "prior", natural
