@@ -112,3 +112,23 @@ def test_memory_bandwidth_takes_any_size(nbytes):
     assert 0 < read["bytes"] <= max(nbytes, 4 * 256)
     assert read["bytes"] >= min(nbytes, 4 * 256) - 4 * 2048
     assert read["bytes_per_s"] > 0
+
+
+def test_gemv_layout_quick_reports_every_form_against_the_reference():
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "gemv_layout.py"), "--quick", "--repeats", "2"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout)
+    assert out["machine"]["cpu"] and len(out["machine"]["load_average_after"]) == 3
+    forms = {r["form"]: r for r in out["rows"]}
+    assert len(forms) == 8
+    for row in forms.values():
+        assert row["best_ms"] > 0 and row["read_gb_per_s"] > 0
+    # every form computes the same product: float32 to rounding, bfloat16 to its precision
+    for name, row in forms.items():
+        assert row["max_abs_difference"] < (1e-4 if name.startswith("float32") else 5e-2), name
