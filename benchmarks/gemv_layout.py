@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         y = jax.block_until_ready(jitted(x, W)).reshape(reference.shape)
         seconds = roofline.timings(functools.partial(jitted, x, W), args.repeats)
         best = min(seconds)
-        weight_bytes = W.size * W.dtype.itemsize
+        weight_bytes = roofline.tree_bytes(W)
         rows.append(
             {
                 "form": name,
@@ -98,16 +98,17 @@ def main(argv: list[str] | None = None) -> int:
                 "max_abs_difference": float(jnp.max(jnp.abs(y - reference))),
             }
         )
+    machine["load_average_after"] = list(os.getloadavg())
     out = {
         "shape": {"K": K, "in": n_in, "out": n_out, "batch": 1},
         "repeats": args.repeats,
-        "machine": {**machine, "load_average_after": list(os.getloadavg())},
+        "machine": machine,
         "rows": rows,
     }
     print(json.dumps(out, indent=1))
     print(
         f"{K} x ({n_in} x {n_out}) weights, batch 1; {machine.get('cpu')}; load "
-        f"{machine['load_average_1_5_15'][0]:.2f} -> {os.getloadavg()[0]:.2f}",
+        f"{machine['load_average_1_5_15'][0]:.2f} -> {machine['load_average_after'][0]:.2f}",
         file=sys.stderr,
     )
     for r in rows:
