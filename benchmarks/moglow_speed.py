@@ -6,9 +6,15 @@ configuration (for CI / a smoke test). Reference: the official PyTorch code (tor
 threads) on this project's 2-core AMD EPYC, measured for issue 16: 18.4 s per float32 training
 step, 71.5 ms/frame at batch 1, 128 ms per frame-step at batch 64, 7.2 GiB peak memory.
 
+Sampling and streaming are timed as the library does them: ``sample`` from
+:func:`motionflows.inference.inference_copy` of the trained model (each flow step's weights
+in their own buffers; the same poses), ``stream_step`` on
+:func:`motionflows.inference.streaming_model` (that copy for float32, the model itself for
+bfloat16 matmuls). ``stacked_sample_*`` times ``sample`` on the model
+itself (the training layout, K steps stacked; what every sampler used before 2026-12-03).
 The bfloat16 run trains and samples with bfloat16 conditioner matmuls (float32 weights); it
-also times ``sample`` from :func:`motionflows.nets.precision.inference_copy` (the weights
-*stored* in bfloat16, half the bytes a batch-1 frame reads): ``inference_copy_sample_*``.
+also times ``sample`` from ``inference_copy(model, "bfloat16")`` (the weights *stored* in
+bfloat16, half the bytes a batch-1 frame reads): ``inference_copy_sample_*``.
 
 Every time is also given as a multiple of its floor on this machine, measured in the same run
 (:mod:`motionflows.roofline`): the matmul FLOPs of the step (counted from its jaxpr) over the
@@ -37,8 +43,8 @@ from flax import nnx
 from motionflows import roofline
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.inference import inference_copy, streaming_model
 from motionflows.models.moglow import MoGlow
-from motionflows.nets.precision import inference_copy
 
 PAPER = {
     "K": 16,
@@ -150,14 +156,19 @@ def _time_training(res: dict, train_step, args: tuple, peak: float, repeats: int
     # returning frees the training buffers before sampling
 
 
-def _time_inference_copy(res: dict, model, compute_dtype, n: int, key, repeats: int) -> None:
-    """Add the sampling ms/frame of a copy with the weights *stored* in ``compute_dtype``."""
-    low = inference_copy(model, compute_dtype)
-    res["inference_copy_weight_bytes"] = roofline.tree_bytes(nnx.state(low, nnx.Param))
-    for batch in (1, 64):
-        ctrl = jax.random.normal(key, (batch, n, CONTROL_DIM))
-        ms, _ = _time_sample(low, ctrl, key, max(repeats, 3))
-        res[f"inference_copy_sample_ms_per_frame_b{batch}"] = ms
+def _time_other_samplers(res: dict, model, compute_dtype, n: int, key, repeats: int) -> None:
+    """Add the sampling ms/frame of the model itself (stacked steps) and, with
+    ``compute_dtype``, of a copy with the weights *stored* in it."""
+    samplers = {"stacked_sample": model}
+    if compute_dtype is not None:
+        low = inference_copy(model, compute_dtype)
+        res["inference_copy_weight_bytes"] = roofline.tree_bytes(nnx.state(low, nnx.Param))
+        samplers["inference_copy_sample"] = low
+    for name, sampler in samplers.items():
+        for batch in (1, 64):
+            ctrl = jax.random.normal(key, (batch, n, CONTROL_DIM))
+            ms, _ = _time_sample(sampler, ctrl, key, max(repeats, 3))
+            res[f"{name}_ms_per_frame_b{batch}"] = ms
 
 
 def _time_sampling(res: dict, model, ctrl, key, repeats: int, bounds: dict) -> dict:
@@ -217,15 +228,15 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     _time_training(res, train_step, args, peak, repeats, warmup)
 
     n = cfg["sample_frames"]
-    if cd is not None:  # the same sampler from a copy with the weights *stored* in bfloat16
-        _time_inference_copy(res, model, cd, n, k_sample, repeats)
+    _time_other_samplers(res, model, cd, n, k_sample, repeats)
     bounds = dict(
         peak_flops_per_s=peak, bytes_read=weight_bytes, bandwidth_bytes_per_s=read["bytes_per_s"]
     )
+    sampler, streamer = inference_copy(model), streaming_model(model)  # as the library does
     for batch in (1, 64):
         ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-        floor = _time_sampling(res, model, ctrl, k_sample, repeats, bounds)
-        _time_streaming(res, model, ctrl, k_sample, floor)
+        floor = _time_sampling(res, sampler, ctrl, k_sample, repeats, bounds)
+        _time_streaming(res, streamer, ctrl, k_sample, floor)
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["device_peak_bytes"] = roofline.device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res
@@ -275,6 +286,11 @@ def summary_text(out: dict) -> str:
                 f"x{res['first_step_over_steady']:.2f} a steady step; stream_step p95 b1 "
                 f"{res['stream_step_ms_b1_p95']:.1f} ms, b64 {res['stream_step_ms_b64_p95']:.1f} ms"
             )
+        lines.append(
+            f"{res['dtype']:>9} sample from the stacked model (training layout): b1 "
+            f"{res['stacked_sample_ms_per_frame_b1']:.2f} ms/frame, b64 "
+            f"{res['stacked_sample_ms_per_frame_b64']:.2f} ms/frame-step"
+        )
         if "inference_copy_sample_ms_per_frame_b1" in res:
             lines.append(
                 f"{res['dtype']:>9} sample from inference_copy (bfloat16 weights): b1 "

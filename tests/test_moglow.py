@@ -363,7 +363,7 @@ def test_residual_flows_the_change_of_pose():
 
 @pytest.mark.parametrize("conditioner", ["lstm", "ff"])
 def test_inference_copy_stores_conditioner_weights_in_bfloat16(conditioner):
-    from motionflows.nets.precision import inference_copy
+    from motionflows.inference import inference_copy
 
     model = _model(conditioner, layers=2)
     lp = inference_copy(model, "bfloat16")

@@ -74,6 +74,9 @@ def test_moglow_speed_quick_reports_floors():
     # the floor of a batch-64 frame can't be below the batch-1 frame's
     assert res["sample_floor_b64"]["floor_s"] >= res["sample_floor_b1"]["floor_s"]
     assert res["stream_step_floor_b1"]["multiple_of_floor_p95"] > 0
+    # the training layout's sampler and the bfloat16-stored copy are timed beside it
+    for name in ("stacked_sample", "inference_copy_sample"):
+        assert res[f"{name}_ms_per_frame_b1"] > 0 and res[f"{name}_ms_per_frame_b64"] > 0
 
 
 def test_glow_fixed_speed_quick_reports_floors():

@@ -11,6 +11,7 @@ forward mode (``jax.jvp``, ``jax.jacfwd``) too.
 from __future__ import annotations
 
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -18,7 +19,7 @@ from flax import nnx
 
 Array = jax.Array
 
-__all__ = ["MATMUL_WEIGHTS", "inference_copy", "matmul", "outer_sum", "product"]
+__all__ = ["MATMUL_WEIGHTS", "matmul", "outer_sum", "product"]
 
 # The parameters the conditioner modules only ever use through :func:`matmul` (LSTM, MLP
 # and convolution weights); biases, ActNorm and the 1x1 maps are never among them.
@@ -65,33 +66,15 @@ _matmul_low.defvjp(_matmul_low_fwd, _matmul_low_bwd)
 
 
 def inference_copy(module: nnx.Module, compute_dtype: str = "bfloat16") -> nnx.Module:
-    """A copy of ``module`` for sampling whose conditioner matmul weights are *stored* in
-    ``compute_dtype`` and whose conditioners compute in it (float32 accumulation).
+    """Deprecated: moved to :func:`motionflows.inference.inference_copy`, whose
+    ``compute_dtype`` defaults to None (float32 weights, the same numbers) and which also
+    unrolls the stacked flow steps. This old entry keeps its bfloat16 default."""
+    from motionflows.inference import inference_copy as moved
 
-    Every submodule with a ``compute_dtype`` attribute (the LSTM, MLP and convolution
-    conditioners) gets ``compute_dtype`` and its :data:`MATMUL_WEIGHTS` cast once; biases,
-    cell states, the flow's ActNorm / 1x1 maps and the base density stay float32. Batch-1
-    sampling is memory-bound (every weight is read once per frame), so bfloat16 storage
-    halves the bytes a frame reads; with weights kept float32 and only ``compute_dtype``
-    set, each frame would instead re-read and re-cast them. ``module`` itself is unchanged
-    (the float32 path stays exact). For sampling and streaming, not training: the copy's
-    weights are not float32 parameters any more.
-
-    Measured on XLA:CPU (docs/readme/speed.md): its bfloat16 products at small batch are
-    slow (1-1.5 GB/s at batch 1), so there this copy samples *slower* than float32 at
-    batch 1 and no faster at batch 64. It is meant for devices with native bfloat16
-    products (GPUs; unmeasured so far).
-    """
-    name = jnp.dtype(compute_dtype).name
-    copy = nnx.clone(module)
-    for _, node in nnx.iter_graph(copy):
-        if not isinstance(node, nnx.Module) or not hasattr(node, "compute_dtype"):
-            continue
-        node.compute_dtype = name
-        for attr in MATMUL_WEIGHTS & set(vars(node)):
-            value = getattr(node, attr)
-            params = value if isinstance(value, nnx.List) else [value]
-            for param in params:
-                if isinstance(param, nnx.Param):
-                    param.set_value(param[...].astype(name))
-    return copy
+    warnings.warn(
+        "motionflows.nets.precision.inference_copy moved to "
+        "motionflows.inference.inference_copy (compute_dtype there defaults to None)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    return moved(module, compute_dtype)

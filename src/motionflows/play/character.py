@@ -28,8 +28,10 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import nnx
 
 from motionflows.data.names import NUM_JOINTS, POSE_DIM
+from motionflows.inference import streaming_model
 
 RAMP_SECONDS = 0.25
 """Time constant of the control ramp: 63 % of a change is applied after this many seconds."""
@@ -85,7 +87,8 @@ class Character:
 
     Args:
       model: a causal model with ``init_stream(batch)`` and
-        ``stream_step(state, control_t, key, temperature=...)`` (standardised units).
+        ``stream_step(state, control_t, key, temperature=...)`` (standardised units); a
+        Flax module is streamed as :func:`~motionflows.inference.streaming_model` says.
       standardizer: the run's standardiser (``normalize_control``, ``denormalize_pose``).
       fps: frames per second of the run's data.
       temperature: latent temperature (1 samples the model, 0 its mode path).
@@ -100,6 +103,8 @@ class Character:
                 f"{type(model).__name__} has no streaming step (init_stream / stream_step); "
                 "play needs a causal frame-by-frame model such as MoGlow"
             )
+        if isinstance(model, nnx.Module):  # separate step weights: the same poses, faster
+            model = streaming_model(model)
         self.model, self.standardizer, self.fps = model, standardizer, float(fps)
         self.temperature = float(temperature)
         self._step = _jitted_step(model)
