@@ -229,14 +229,19 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
 
     n = cfg["sample_frames"]
     _time_other_samplers(res, model, cd, n, k_sample, repeats)
-    bounds = dict(
-        peak_flops_per_s=peak, bytes_read=weight_bytes, bandwidth_bytes_per_s=read["bytes_per_s"]
-    )
     sampler, streamer = inference_copy(model), streaming_model(model)  # as the library does
+
+    def bounds(module) -> dict:  # a bfloat16 model's copy holds bfloat16 weights: half the bytes
+        return dict(
+            peak_flops_per_s=peak,
+            bytes_read=roofline.tree_bytes(nnx.state(module, nnx.Param)),
+            bandwidth_bytes_per_s=read["bytes_per_s"],
+        )
+
     for batch in (1, 64):
         ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-        floor = _time_sampling(res, sampler, ctrl, k_sample, repeats, bounds)
-        _time_streaming(res, streamer, ctrl, k_sample, floor)
+        floor = _time_sampling(res, sampler, ctrl, k_sample, repeats, bounds(sampler))
+        _time_streaming(res, streamer, ctrl, k_sample, dict(floor, **bounds(streamer)))
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["device_peak_bytes"] = roofline.device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res

@@ -9,8 +9,11 @@ second bench reuses the finished runs instead of retraining.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -200,6 +203,44 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     assert bench.find_run(root / "runs", prov["experiment"], other) is None
 
 
+def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(smoke, tmp_path):
+    """``--set data.tempo=...``: the model trains on its tempo-augmented takes (its own
+    standardiser) and is scored on the bench's frames in its own units."""
+    root, first = smoke
+    again = _bench_again(smoke, tmp_path / "out", "linear_ar", ["data.tempo=1.25"])
+    entry = again["models"]["linear_ar"]
+    assert not entry["reused"] and entry["config"]["data"]["tempo"] == 1.25
+    run = Path(entry["run_dir"])
+    run = run if run.is_absolute() else root / run
+    plain = Path(first["models"]["linear_ar"]["run_dir"])
+    plain = plain if plain.is_absolute() else root / plain
+    own, shared = (json.loads((r / "standardizer.json").read_text()) for r in (run, plain))
+    assert not np.allclose(own["pose_std"], shared["pose_std"])  # fitted on other windows
+    a = entry["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+    b = first["models"]["linear_ar"]["likelihood"]["window"]["test"]["nats_per_frame_metres"]
+    assert math.isfinite(a) and abs(a - b) < 0.2 * abs(b)  # the same frames, in metres
+
+
+def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_path):
+    """A field added later (here ``data.tempo``) takes its default for old runs, so the
+    bench does not retrain them; a saved value other than the default still differs."""
+    root, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke")
+    exp = bench.load_experiment("linear_ar")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    run = Path(first["models"]["linear_ar"]["run_dir"])
+    run = run if run.is_absolute() else root / run
+    old = tmp_path / "runs" / prov["experiment"] / run.name
+    shutil.copytree(run, old)
+    payload = json.loads((old / "config.json").read_text())
+    del payload["config"]["data"]["tempo"]
+    (old / "config.json").write_text(json.dumps(payload))
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config) == old
+    payload["config"]["data"]["tempo"] = 1.25
+    (old / "config.json").write_text(json.dumps(payload))
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config) is None
+
+
 def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, capsys):
     _, first = smoke
     data = bench.parse_data_spec("synthetic", "smoke")
@@ -215,6 +256,10 @@ def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, ca
         bench.check_overrides(["linear_ar"], "smoke", data, ["histroy_noise=0.1"])
     with pytest.raises(RunError, match="same data"):
         bench.bench_config("linear_ar", "smoke", data, None, ["data.window=8"])
+    # training augmentation may differ per model: the scored frames stay the same
+    tempo, prov = bench.bench_config("moglow", "smoke", data, None, ["data.tempo=1.25"])
+    assert tempo.data.tempo == 1.25 and prov["set"] == ["data.tempo=1.25"]
+    assert dataclasses.replace(tempo.data, tempo=1.0) == data
     args = ["--models", "linear_ar", "--budget", "smoke", "--out", str(tmp_path / "o2")]
     assert bench.main([*args, "--set", "train.seed=x"]) == 2
     assert "train.seed" in capsys.readouterr().err

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from motionflows.data import clip_from_bvh
-from motionflows.data.augment import mirror_clip, reverse_clip, reverse_time
+from motionflows.data.augment import (
+    augment_clips,
+    mirror_clip,
+    reverse_clip,
+    reverse_time,
+    tempo_clip,
+)
 from motionflows.data.features import (
     ROOT_SIGMA_S,
     carry_to_next_root,
@@ -156,6 +162,37 @@ def test_reverse_control_is_the_true_backward_step():
     # integrate the reversed control from the last point with the last heading
     rpos, _ = integrate_control(rc[:-1], yaw0=yaw[-2], start=pos[-2])
     np.testing.assert_allclose(rpos[-1], pos[0], atol=1e-4)
+
+
+def test_tempo_replays_the_take_at_another_speed_with_the_same_strides():
+    clip = generate(1, 6.0, seed=6)[0]
+    # r = 1: the take again, but for its last frame (whose loss moves the root smoothing's
+    # boundary: compare away from the end, 3 sigma of the root's Gaussian)
+    same = tempo_clip(clip, 1.0)
+    k = len(clip.pose) - 1 - int(3 * ROOT_SIGMA_S * clip.fps) - 1
+    np.testing.assert_allclose(same.pose[:k], clip.pose[:k], atol=1e-5)
+    np.testing.assert_allclose(same.control[:k], clip.control[:k], atol=1e-5)
+    slow = tempo_clip(clip, 0.8)
+    n = len(clip.pose)
+    assert len(slow.pose) == int(np.floor((n - 1) / 0.8 + 1e-6)) and slow.meta["tempo"] == 0.8
+    # the same path in the world, walked at 0.8 times the speed
+    path = np.linalg.norm(clip.control[:-1, :2], axis=-1).sum()
+    slow_path = np.linalg.norm(slow.control[:, :2], axis=-1).sum()
+    assert slow_path == pytest.approx(path, rel=0.02)
+    speed = np.linalg.norm(clip.control[:, :2], axis=-1).mean()
+    assert np.linalg.norm(slow.control[:, :2], axis=-1).mean() == pytest.approx(
+        0.8 * speed, rel=0.03
+    )
+    # the same poses, more of them: every slow frame is close to some frame of the take
+    joints = slow.pose.reshape(-1, NUM_JOINTS, 3)
+    orig = clip.pose.reshape(-1, NUM_JOINTS, 3)
+    nearest = np.abs(joints[:, None] - orig[None]).max(axis=(2, 3)).min(axis=1)
+    assert np.median(nearest) < 0.03
+    with pytest.raises(ValueError, match="tempo"):
+        tempo_clip(clip, 0.0)
+    # augment_clips adds each training take at 1/tempo and tempo times its speed
+    out = augment_clips([clip], mirror=True, reverse=False, tempo=1.25)
+    assert sorted(round(c.meta.get("tempo", 1.0), 3) for c in out) == [0.8, 0.8, 1, 1, 1.25, 1.25]
 
 
 def test_mirror_swaps_left_right_and_turn_sign():

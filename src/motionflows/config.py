@@ -35,6 +35,9 @@ class DataConfig:
     synthetic_seconds: float = 12.0
     seed: int = 0
     root_sigma_s: float = ROOT_SIGMA_S  # root smoothing, s (features.py; Holden's: 0.05)
+    # tempo augmentation: every training take also played at 1/tempo and tempo times its
+    # speed (data/augment.py; 1 = off)
+    tempo: float = 1.0
 
     def __post_init__(self):
         _check_fields(self, DATA_LIMITS)
@@ -63,6 +66,7 @@ class DataConfig:
             seconds=self.synthetic_seconds,
             seed=self.seed,
             root_sigma_s=self.root_sigma_s,
+            tempo=self.tempo,
         )
 
 
@@ -131,6 +135,7 @@ DATA_LIMITS: dict[str, _Limit] = {
     "synthetic_clips": (1, INF, True, True),
     "synthetic_seconds": (0.0, 3600.0, False, True),
     "root_sigma_s": (0.0, 60.0, True, True),
+    "tempo": (0.1, 10.0, True, True),
 }
 TRAIN_LIMITS: dict[str, _Limit] = {
     "steps": (0, INF, True, True),

@@ -13,7 +13,7 @@ the shipped ``cpu`` MoGlow's samples, 1 and 256 sequences of 200 frames).
 
 Measured on the 2-core AMD EPYC (docs/readme/speed.md, "Sampling from separate step
 weights"): paper-size MoGlow ``sample`` at batch 1 26.6 -> 12.9 ms per frame, the shipped
-``cpu`` MoGlow 0.53 -> 0.26 ms per frame, both bit-identical samples.
+``cpu`` MoGlow 0.53 -> 0.26 ms per frame (its samples bit-identical).
 """
 
 from __future__ import annotations

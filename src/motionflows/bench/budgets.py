@@ -155,6 +155,11 @@ def check_overrides(names: Sequence[str], budget: str, data: DataConfig, overrid
         )
 
 
+TRAINING_AUGMENTATION: tuple[str, ...] = ("data.mirror", "data.reverse", "data.tempo")
+"""The data fields ``motionflows bench --set`` may change: they augment the training takes
+only, so every model is still validated and scored on the same frames."""
+
+
 def bench_config(
     model: str, budget: str, data: DataConfig, exp=None, overrides: Sequence[str] = ()
 ) -> tuple[Any, dict]:
@@ -163,7 +168,8 @@ def bench_config(
     The experiment's preset of the budget (:data:`BUDGETS`) with the model's selecting
     fields and the data section replaced by ``data`` (identical frames for every model),
     then the ``key=value`` ``overrides`` (``motionflows bench --set``) that name a field of
-    this model's config; the others are listed in ``provenance["overrides_skipped"]``.
+    this model's config; the others are listed in ``provenance["overrides_skipped"]``. Of
+    the data fields only :data:`TRAINING_AUGMENTATION` may be set.
     Returns (config, provenance dict).
     """
     if budget not in BUDGETS:
@@ -181,10 +187,12 @@ def bench_config(
     except TypeError as err:
         raise RunError(f"{exp.__name__}.Config cannot select model {model!r}: {err}") from None
     for item in overrides:
-        if item.split("=", 1)[0].strip().startswith("data."):
+        key = item.split("=", 1)[0].strip()
+        if key.startswith("data.") and key not in TRAINING_AUGMENTATION:
             raise RunError(
                 f"--set {item}: the bench gives every model the same data; choose them with "
-                "--data and --test-data"
+                "--data and --test-data (of the data fields, --set takes only the training "
+                f"augmentation: {', '.join(TRAINING_AUGMENTATION)})"
             )
     applied = [item for item in overrides if has_override_key(config, item)]
     config = apply_overrides(config, applied)

@@ -8,7 +8,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from motionflows.config import DataConfig, read_config_json, to_dict
+from motionflows.config import DataConfig, config_from_json, read_config_json, to_dict
 from motionflows.errors import RunError
 from motionflows.runs import MetricsWarning, read_metrics
 
@@ -58,11 +58,14 @@ def find_run(
     for path in base.glob("*/config.json"):
         try:
             saved = read_config_json(path)
+            if saved.get("experiment", experiment) != experiment:
+                continue
+            # rebuilt through the config class: a field added since the run was saved
+            # takes its default (the behaviour the run was trained with)
+            saved_config = to_dict(config_from_json(path, type(config), saved))
         except RunError:
             continue
-        if saved.get("experiment", experiment) != experiment:
-            continue
-        if _without(saved.get("config"), sampling_fields) != want:
+        if _without(saved_config, sampling_fields) != want:
             continue
         if run_finished(path.parent, steps):
             hits.append(path.parent)

@@ -1,4 +1,5 @@
-"""Augmentations of (pose, control) sequences; each is an involution (applied twice = id).
+"""Augmentations of (pose, control) sequences. Mirror and time reversal are involutions
+(applied twice = id); tempo replays a take faster or slower.
 
 Shapes: pose (..., T, 63), control (..., T, 3) with (forward, sideways, turn).
 
@@ -11,13 +12,24 @@ Shapes: pose (..., T, 63), control (..., T, 3) with (forward, sideways, turn).
   s < T-1, and the final control, whose old counterpart lies outside the sequence, is
   ``rev(c[T-1])`` (an approximation at one boundary frame that keeps the map an
   involution).
+* Tempo ``r``: the take played r times as fast. Its world joint positions
+  (:func:`~motionflows.data.features.world_from_features`) are treated as recorded at
+  ``r * fps`` and their features rebuilt at ``fps``
+  (:func:`~motionflows.data.features.features_from_positions`: resampled, root smoothed,
+  controls taken again): r = 0.8 is the same strides at 0.8 times the cadence and speed,
+  (T - 1) / 0.8 frames. r = 1 gives the take back, but for its last frame.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from motionflows.data.features import Clip
+from motionflows.data.features import (
+    ROOT_SIGMA_S,
+    Clip,
+    features_from_positions,
+    world_from_features,
+)
 from motionflows.data.names import MIRROR_JOINTS, NUM_JOINTS
 
 
@@ -70,11 +82,35 @@ def reverse_clip(clip: Clip) -> Clip:
     )
 
 
-def augment_clips(clips: list[Clip], *, mirror: bool, reverse: bool) -> list[Clip]:
-    """Originals plus mirrored and/or reversed copies (same take names: splits stay by take)."""
+def tempo_clip(clip: Clip, rate: float, *, root_sigma_s: float = ROOT_SIGMA_S) -> Clip:
+    """The take played ``rate`` times as fast (see the module docstring); ``root_sigma_s``
+    must be the one its features were made with."""
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"tempo rate must be a positive number, got {rate}")
+    world = world_from_features(clip.pose, clip.control)
+    meta = dict(clip.meta, tempo=float(rate) * float(clip.meta.get("tempo", 1.0)))
+    return features_from_positions(
+        world, clip.fps * rate, clip.fps, name=clip.name, meta=meta, root_sigma_s=root_sigma_s
+    )
+
+
+def augment_clips(
+    clips: list[Clip],
+    *,
+    mirror: bool,
+    reverse: bool,
+    tempo: float = 1.0,
+    root_sigma_s: float = ROOT_SIGMA_S,
+) -> list[Clip]:
+    """Originals plus mirrored and/or reversed copies and, with ``tempo`` != 1, all of
+    those also played at ``1 / tempo`` and ``tempo`` times their speed (same take names:
+    splits stay by take)."""
     out = list(clips)
     if mirror:
         out += [mirror_clip(c) for c in clips]
     if reverse:
         out += [reverse_clip(c) for c in out]
+    if tempo != 1.0:
+        rates = (1.0 / tempo, tempo)
+        out += [tempo_clip(c, r, root_sigma_s=root_sigma_s) for r in rates for c in out]
     return out

@@ -8,8 +8,9 @@ each content group by a hash of their names and gives ``val_frac`` / ``test_frac
 to val / test (at least one each when a group has >= 3 takes); ``split_by="performer"``
 holds out whole performers for test (``test_performers``, default the last one in sorted
 order) and val (``val_performers``; default: a take split of the remaining performers).
-Augmentation (``mirror``, ``reverse``) is applied to the training takes only; the
-standardiser is fitted on the augmented training windows.
+Augmentation (``mirror``, ``reverse``, ``tempo``: :mod:`motionflows.data.augment`) is
+applied to the training takes only; the standardiser is fitted on the augmented training
+windows.
 """
 
 from __future__ import annotations
@@ -151,6 +152,11 @@ class MotionDataset:
     val = property(lambda self: self._splits["val"])
     test = property(lambda self: self._splits["test"])
 
+    def with_standardizer(self, standardizer: Standardizer) -> MotionDataset:
+        """The same windows with another standardiser (e.g. a run's, fitted on its own
+        augmented training windows): the frames stay, their standardised units change."""
+        return MotionDataset(self._splits, standardizer, self.info, self.clips)
+
     def split(self, name: str) -> WindowSet:
         if name not in self._splits:
             raise ValueError(f"unknown split {name!r}; valid: {', '.join(SPLITS)}")
@@ -288,6 +294,8 @@ def _split_windows(
     reverse: bool,
     short: str,
     min_frames: int | None,
+    tempo: float = 1.0,
+    root_sigma_s: float = ROOT_SIGMA_S,
 ) -> tuple[dict[str, WindowSet], dict[str, dict]]:
     """The windows and window statistics of each split (training takes augmented first);
     raise if the training split has no window."""
@@ -295,7 +303,9 @@ def _split_windows(
     for s in SPLITS:
         cs = split_clips[s]
         if s == "train":
-            cs = augment_clips(cs, mirror=mirror, reverse=reverse)
+            cs = augment_clips(
+                cs, mirror=mirror, reverse=reverse, tempo=tempo, root_sigma_s=root_sigma_s
+            )
         splits[s], stats[s] = make_windows(
             cs, int(window), int(hop), short=short, min_frames=min_frames
         )
@@ -370,6 +380,7 @@ def load_dataset(
     cache: bool = True,
     cache_dir=None,
     root_sigma_s: float = ROOT_SIGMA_S,
+    tempo: float = 1.0,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -396,7 +407,9 @@ def load_dataset(
     split_clips = _assign_takes(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
-    splits, stats = _split_windows(split_clips, window, hop, mirror, reverse, short, min_frames)
+    splits, stats = _split_windows(
+        split_clips, window, hop, mirror, reverse, short, min_frames, tempo, root_sigma_s
+    )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     _warn_dropped(dropped, window, short, min_frames)
     train = splits["train"]
@@ -408,7 +421,7 @@ def load_dataset(
         "window": int(window),
         "hop": int(hop),
         "split_by": split_by,
-        "augment": {"mirror": bool(mirror), "reverse": bool(reverse)},
+        "augment": {"mirror": bool(mirror), "reverse": bool(reverse), "tempo": float(tempo)},
         **_split_info(split_clips, splits, stats, dropped),
         "seconds": sum(len(c) for c in clips) / float(fps),
         **source_info,
