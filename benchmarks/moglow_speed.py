@@ -238,10 +238,11 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
             bandwidth_bytes_per_s=read["bytes_per_s"],
         )
 
+    sampler_bounds, streamer_bounds = bounds(sampler), bounds(streamer)
     for batch in (1, 64):
         ctrl = jax.random.normal(k_sample, (batch, n, CONTROL_DIM))
-        floor = _time_sampling(res, sampler, ctrl, k_sample, repeats, bounds(sampler))
-        _time_streaming(res, streamer, ctrl, k_sample, dict(floor, **bounds(streamer)))
+        floor = _time_sampling(res, sampler, ctrl, k_sample, repeats, sampler_bounds)
+        _time_streaming(res, streamer, ctrl, k_sample, dict(floor, **streamer_bounds))
     res["peak_rss_mb_so_far"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     res["device_peak_bytes"] = roofline.device_peak_bytes()  # GPU/TPU; None on CPU (see peak RSS)
     return res

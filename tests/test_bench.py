@@ -203,6 +203,12 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     assert bench.find_run(root / "runs", prov["experiment"], other) is None
 
 
+def _run_dir(root: Path, entry: dict) -> Path:
+    """A report entry's run directory (relative ones are under the fixture's root)."""
+    run = Path(entry["run_dir"])
+    return run if run.is_absolute() else root / run
+
+
 def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(smoke, tmp_path):
     """``--set data.tempo=...``: the model trains on its tempo-augmented takes (its own
     standardiser) and is scored on the bench's frames in its own units."""
@@ -210,10 +216,7 @@ def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(sm
     again = _bench_again(smoke, tmp_path / "out", "linear_ar", ["data.tempo=1.25"])
     entry = again["models"]["linear_ar"]
     assert not entry["reused"] and entry["config"]["data"]["tempo"] == 1.25
-    run = Path(entry["run_dir"])
-    run = run if run.is_absolute() else root / run
-    plain = Path(first["models"]["linear_ar"]["run_dir"])
-    plain = plain if plain.is_absolute() else root / plain
+    run, plain = _run_dir(root, entry), _run_dir(root, first["models"]["linear_ar"])
     own, shared = (json.loads((r / "standardizer.json").read_text()) for r in (run, plain))
     assert not np.allclose(own["pose_std"], shared["pose_std"])  # fitted on other windows
     a = entry["likelihood"]["window"]["test"]["nats_per_frame_metres"]
@@ -228,8 +231,7 @@ def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_pa
     data = bench.parse_data_spec("synthetic", "smoke")
     exp = bench.load_experiment("linear_ar")
     config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
-    run = Path(first["models"]["linear_ar"]["run_dir"])
-    run = run if run.is_absolute() else root / run
+    run = _run_dir(root, first["models"]["linear_ar"])
     old = tmp_path / "runs" / prov["experiment"] / run.name
     shutil.copytree(run, old)
     payload = json.loads((old / "config.json").read_text())

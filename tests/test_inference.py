@@ -61,11 +61,11 @@ def test_copy_holds_each_steps_weights_apart_and_samples_the_same_poses(conditio
     # the same products: equal up to float32 rounding (bit for bit for the LSTM MoGlows
     # here and the shipped model; XLA may fuse a feed-forward step's ops differently)
     np.testing.assert_allclose(sample(copy, jax.random.key(6), control), exact, atol=1e-5)
-    # streaming from the copy's own state, and scoring, are the same maps too
+    # streaming from the copy's own state, and scoring, are the same maps too (one frame
+    # alone: XLA may fuse it differently from inside the scan, so equal to float32 rounding)
     step = jax.jit(lambda m, s, c, key: m.stream_step(s, c, key, temperature=0.8))
     x0, _ = step(copy, copy.init_stream(2), control[:, 0], jax.random.key(6))
-    np.testing.assert_allclose(x0, exact[:, 0], atol=1e-6)  # one frame alone: XLA may fuse it
-    # differently from inside the scan, so equal to float32 rounding here
+    np.testing.assert_allclose(x0, exact[:, 0], atol=1e-6)
     pose = jax.random.normal(jax.random.key(7), (2, 7, D))
     np.testing.assert_allclose(copy.log_prob(pose, control), model.log_prob(pose, control),
                                rtol=1e-6)  # fmt: skip
