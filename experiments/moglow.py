@@ -152,10 +152,13 @@ PRESETS["preferred"] = dataclasses.replace(
 # performer from 7x to 2x that of real motion and the test NLL by 127 nats/frame), on the
 # 4 s windows the bench scores, 8000 steps of batch 32, with history_noise 0.03 (training
 # on noisy histories: on held-out takes pose FD 0.078 -> 0.057, contact rate 0.18 -> 0.28,
-# 3x less bone drift over 12 s, for 28 nats/frame of clean-history NLL).
+# 3x less bone drift over 12 s, for 28 nats/frame of clean-history NLL), and every training
+# take also replayed at 0.8x and 1.25x its speed (data.tempo: the same strides at other
+# cadences; on the unseen performer foot sliding 0.286 -> 0.205 m/s, jerk 1.56x -> 1.41x,
+# pose FD 0.065 -> 0.052, for 3 nats/frame of NLL; docs/readme/cpu_budget.md).
 PRESETS["cpu"] = dataclasses.replace(
     PRESETS["quick"],
-    data=DataConfig(window=80, hop=10, mirror=True),
+    data=DataConfig(window=80, hop=10, mirror=True, tempo=1.25),
     train=dataclasses.replace(
         PRESETS["quick"].train,
         steps=8000,

@@ -222,6 +222,9 @@ def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(sm
     a = entry["likelihood"]["window"]["test"]["nats_per_frame_metres"]
     b = first["models"]["linear_ar"]["likelihood"]["window"]["test"]["nats_per_frame_metres"]
     assert math.isfinite(a) and abs(a - b) < 0.2 * abs(b)  # the same frames, in metres
+    report = (tmp_path / "out" / "BENCHMARK.md").read_text()
+    assert "other training augmentation: linear_ar (tempo 1.25)" in report
+    assert "other training augmentation" not in (root / "out" / "BENCHMARK.md").read_text()
 
 
 def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_path):
@@ -265,6 +268,22 @@ def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, ca
     args = ["--models", "linear_ar", "--budget", "smoke", "--out", str(tmp_path / "o2")]
     assert bench.main([*args, "--set", "train.seed=x"]) == 2
     assert "train.seed" in capsys.readouterr().err
+
+
+def test_a_budgets_preset_keeps_its_training_augmentation():
+    """The bench gives every model its frames, but a preset's training augmentation
+    (mirror, reverse, tempo) is part of what the budget trains: the `cpu` MoGlow trains
+    with its tempo, the `paper` MoGlow with time reversal, as `motionflows train` would."""
+    import experiments.moglow as moglow
+
+    data = bench.parse_data_spec("synthetic", "cpu")
+    for budget, preset in (("cpu", "cpu"), ("full", "paper")):
+        config, _ = bench.bench_config("moglow", budget, data)
+        own = moglow.PRESETS[preset].data
+        kept = {f: getattr(own, f) for f in ("mirror", "reverse", "tempo")}
+        assert config.data == dataclasses.replace(data, **kept), budget
+    assert bench.bench_config("moglow", "cpu", data)[0].data.tempo != data.tempo
+    assert bench.bench_config("moglow", "full", data)[0].data.reverse != data.reverse
 
 
 def test_a_sampling_only_field_reuses_the_run_and_samples_as_asked(smoke, tmp_path):

@@ -14,6 +14,7 @@ from motionflows.bijectors import Chain, Scan
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.inference import inference_copy, streaming_model
 from motionflows.models.moglow import MoGlow
+from tests.params import perturbed
 
 D, C, TAU, K, H = 6, 2, 3, 3, 8
 
@@ -23,11 +24,7 @@ def _model(conditioner="lstm", residual=False, seed=0, dims=(D, C)) -> MoGlow:
     so the conditioners' weights decide the samples)."""
     m = MoGlow(*dims, tau=TAU, K=K, hidden=H, num_layers=2, conditioner=conditioner,
                residual=residual, rngs=jax.random.key(seed))  # fmt: skip
-    graph, params, rest = nnx.split(m, nnx.Param, ...)
-    leaves, tdef = jax.tree.flatten(params)
-    keys = jax.random.split(jax.random.key(seed + 1), len(leaves))
-    leaves = [p + 0.15 * jax.random.normal(k, p.shape) for p, k in zip(leaves, keys, strict=True)]
-    return nnx.merge(graph, jax.tree.unflatten(tdef, leaves), rest)
+    return perturbed(m, jax.random.key(seed + 1))
 
 
 def _weights(module) -> dict[str, jax.Array]:

@@ -12,17 +12,9 @@ from flax import nnx
 
 from motionflows.bijectors import initialize_from_data
 from motionflows.models.moglow import MoGlow, build_conditions
+from tests.params import perturbed
 
 D, C, TAU, K, H = 6, 2, 3, 2, 8
-
-
-def _perturbed(model: MoGlow, key, scale=0.15) -> MoGlow:
-    """The model with every trainable parameter moved off its initial value (non-trivial)."""
-    graph, params, rest = nnx.split(model, nnx.Param, ...)
-    leaves, tdef = jax.tree.flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    leaves = [p + scale * jax.random.normal(k, p.shape) for p, k in zip(leaves, keys, strict=True)]
-    return nnx.merge(graph, jax.tree.unflatten(tdef, leaves), rest)
 
 
 def _model(conditioner="lstm", seed=0, layers=1, **kw) -> MoGlow:
@@ -37,7 +29,7 @@ def _model(conditioner="lstm", seed=0, layers=1, **kw) -> MoGlow:
         rngs=jax.random.key(seed),
         **kw,
     )
-    return _perturbed(m, jax.random.key(seed + 100))
+    return perturbed(m, jax.random.key(seed + 100))
 
 
 def _data(b=3, t=9, seed=1):
@@ -397,7 +389,7 @@ def _world_model(seed=0):
     rng = np.random.default_rng(seed)
     m = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
                residual_world=True, rngs=jax.random.key(seed))  # fmt: skip
-    m = _perturbed(m, jax.random.key(seed + 100), scale=0.05)
+    m = perturbed(m, jax.random.key(seed + 100), scale=0.05)
     return m.with_units(
         rng.normal(0, 0.3, POSE_DIM), rng.uniform(0.05, 0.4, POSE_DIM),
         np.array([0.04, 0.0, 0.0]), np.array([0.03, 0.01, 0.05]),

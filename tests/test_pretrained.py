@@ -148,3 +148,23 @@ def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, caps
     assert {str(np.load(f)["run_dir"]) for f in files} == {str(run_dir), str(out)}
     assert cli.main(["sample", str(out), *args]) == 0  # the same run again: replaced in place
     assert len(list(tmp_path.glob("*.npz"))) == 2
+
+
+@pytest.mark.parametrize("name", pretrained.available())
+def test_shipped_model_is_its_experiments_cpu_preset(name):
+    """Each shipped model is its experiment's `cpu` preset trained on all Bandai takes (split
+    by take): a preset changed without retraining the shipped model fails here."""
+    import dataclasses
+    import importlib
+
+    from motionflows.config import config_from_json, read_config_json, to_dict
+
+    path = pretrained.path(name) / "config.json"
+    saved = read_config_json(path)
+    module = importlib.import_module(f"experiments.{saved['experiment']}")
+    assert saved["preset"] == "cpu"
+    preset = module.PRESETS["cpu"]
+    want = dataclasses.replace(
+        preset, data=dataclasses.replace(preset.data, source="bandai", split_by="take")
+    )
+    assert to_dict(config_from_json(path, module.Config, saved)) == to_dict(want)

@@ -7,7 +7,8 @@ that select that model, e.g. the baselines' ``{"gaussian": {"model": "gaussian"}
 one model named after the entry point. A budget names the preset every model starts from
 (:data:`BUDGETS`), so each experiment declares its own ``smoke`` preset (a CI-sized model
 and a few steps); the bench then replaces the preset's data section by its one
-:class:`~motionflows.config.DataConfig`, so every model sees identical windows.
+:class:`~motionflows.config.DataConfig`, so every model is validated and scored on identical
+windows, keeping only the preset's training augmentation (:data:`TRAINING_AUGMENTATION`).
 """
 
 from __future__ import annotations
@@ -160,16 +161,24 @@ TRAINING_AUGMENTATION: tuple[str, ...] = ("data.mirror", "data.reverse", "data.t
 only, so every model is still validated and scored on the same frames."""
 
 
+def _fields(dotted: Sequence[str]) -> tuple[str, ...]:
+    """``("data.mirror", ...)`` -> ``("mirror", ...)``."""
+    return tuple(k.split(".", 1)[1] for k in dotted)
+
+
 def bench_config(
     model: str, budget: str, data: DataConfig, exp=None, overrides: Sequence[str] = ()
 ) -> tuple[Any, dict]:
     """The exact config the bench trains for ``model`` at ``budget`` on ``data``.
 
     The experiment's preset of the budget (:data:`BUDGETS`) with the model's selecting
-    fields and the data section replaced by ``data`` (identical frames for every model),
-    then the ``key=value`` ``overrides`` (``motionflows bench --set``) that name a field of
-    this model's config; the others are listed in ``provenance["overrides_skipped"]``. Of
-    the data fields only :data:`TRAINING_AUGMENTATION` may be set.
+    fields and the data section replaced by ``data`` (identical frames for every model)
+    but for the preset's own training augmentation (:data:`TRAINING_AUGMENTATION`: the
+    augmented takes only enter training, so a model trained with them is scored on the same
+    frames in its own standardised units), then the ``key=value`` ``overrides``
+    (``motionflows bench --set``) that name a field of this model's config; the others are
+    listed in ``provenance["overrides_skipped"]``. Of the data fields only
+    :data:`TRAINING_AUGMENTATION` may be set.
     Returns (config, provenance dict).
     """
     if budget not in BUDGETS:
@@ -182,8 +191,12 @@ def bench_config(
             f"{exp.__name__} has no preset {preset!r} (has {list(exp.PRESETS)}); the "
             f"{budget} budget needs one"
         )
+    own = exp.PRESETS[preset]
+    augmentation = {k: getattr(own.data, k) for k in _fields(TRAINING_AUGMENTATION)}
     try:
-        config = dataclasses.replace(exp.PRESETS[preset], **entry.fields, data=data)
+        config = dataclasses.replace(
+            own, **entry.fields, data=dataclasses.replace(data, **augmentation)
+        )
     except TypeError as err:
         raise RunError(f"{exp.__name__}.Config cannot select model {model!r}: {err}") from None
     for item in overrides:
@@ -200,7 +213,10 @@ def bench_config(
         "experiment": getattr(exp, "NAME", entry.experiment),
         "module": exp.__name__,
         "preset": preset,
-        "overrides": {**entry.fields, "data": "the bench's data config"},
+        "overrides": {
+            **entry.fields,
+            "data": "the bench's data config with the preset's training augmentation",
+        },
         "overrides_skipped": [item for item in overrides if item not in applied],
     }
     if applied:

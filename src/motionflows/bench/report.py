@@ -250,6 +250,29 @@ def _header(results: dict) -> list[str]:
     ]
 
 
+def _own_augmentation(results: dict) -> str:
+    """A sentence naming the models trained with other training augmentation than the
+    bench's data (their preset's, or ``--set data.tempo=...``); "" if none."""
+    from motionflows.bench.budgets import TRAINING_AUGMENTATION
+
+    bench = results["data"]["config"]
+    fields = [k.split(".", 1)[1] for k in TRAINING_AUGMENTATION]
+    own = []
+    for name, entry in results.get("models", {}).items():
+        data = (entry.get("config") or {}).get("data") or {}
+        diff = [f"{k} {data[k]}" for k in fields if k in data and data[k] != bench.get(k)]
+        if diff:
+            own.append(f"{name} ({', '.join(diff)})")
+    if not own:
+        return ""
+    return (
+        " Trained with other training augmentation: "
+        + "; ".join(own)
+        + ". The augmented takes enter that model's training only; it is validated and "
+        "scored on the same windows, standardised by its own run."
+    )
+
+
 def _data_section(results: dict) -> list[str]:
     data = results["data"]
     cfg, info = data["config"], data.get("info", {})
@@ -262,8 +285,8 @@ def _data_section(results: dict) -> list[str]:
         f"Takes train / val / test: {_split3(info.get('takes'))}; windows "
         f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
         f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
-        "trained on this one data configuration and scored on the same test windows "
-        "and controls; windows padded past the end of a short take are not scored.\n",
+        "trained on these takes and scored on the same test windows and controls; windows "
+        "padded past the end of a short take are not scored." + _own_augmentation(results) + "\n",
     ]
     test = results.get("test_data") or {}
     if test.get("spec"):
