@@ -155,13 +155,13 @@ def test_shipped_model_is_its_experiments_cpu_preset(name):
     """Each shipped model is its experiment's `cpu` preset trained on all Bandai takes (split
     by take): a preset changed without retraining the shipped model fails here."""
     import dataclasses
-    import importlib
 
     from motionflows.config import config_from_json, read_config_json, to_dict
+    from motionflows.runs import resolve_experiment
 
     path = pretrained.path(name) / "config.json"
     saved = read_config_json(path)
-    module = importlib.import_module(f"experiments.{saved['experiment']}")
+    module = resolve_experiment(saved["experiment"])
     assert saved["preset"] == "cpu"
     preset = module.PRESETS["cpu"]
     want = dataclasses.replace(

@@ -156,14 +156,13 @@ def check_overrides(names: Sequence[str], budget: str, data: DataConfig, overrid
         )
 
 
-TRAINING_AUGMENTATION: tuple[str, ...] = ("data.mirror", "data.reverse", "data.tempo")
-"""The data fields ``motionflows bench --set`` may change: they augment the training takes
-only, so every model is still validated and scored on the same frames."""
+AUGMENTATION_FIELDS: tuple[str, ...] = ("mirror", "reverse", "tempo")
+"""The :class:`~motionflows.config.DataConfig` fields that augment the training takes only,
+so a model may differ in them from the bench's data and still be validated and scored on
+the same frames: each preset keeps its own, and ``motionflows bench --set`` may change them."""
 
-
-def _fields(dotted: Sequence[str]) -> tuple[str, ...]:
-    """``("data.mirror", ...)`` -> ``("mirror", ...)``."""
-    return tuple(k.split(".", 1)[1] for k in dotted)
+TRAINING_AUGMENTATION: tuple[str, ...] = tuple(f"data.{k}" for k in AUGMENTATION_FIELDS)
+"""The dotted names of :data:`AUGMENTATION_FIELDS`, as ``motionflows bench --set`` takes them."""
 
 
 def bench_config(
@@ -192,7 +191,7 @@ def bench_config(
             f"{budget} budget needs one"
         )
     own = exp.PRESETS[preset]
-    augmentation = {k: getattr(own.data, k) for k in _fields(TRAINING_AUGMENTATION)}
+    augmentation = {k: getattr(own.data, k) for k in AUGMENTATION_FIELDS}
     try:
         config = dataclasses.replace(
             own, **entry.fields, data=dataclasses.replace(data, **augmentation)

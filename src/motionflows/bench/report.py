@@ -253,14 +253,15 @@ def _header(results: dict) -> list[str]:
 def _own_augmentation(results: dict) -> str:
     """A sentence naming the models trained with other training augmentation than the
     bench's data (their preset's, or ``--set data.tempo=...``); "" if none."""
-    from motionflows.bench.budgets import TRAINING_AUGMENTATION
+    from motionflows.bench.budgets import AUGMENTATION_FIELDS
 
     bench = results["data"]["config"]
-    fields = [k.split(".", 1)[1] for k in TRAINING_AUGMENTATION]
     own = []
     for name, entry in results.get("models", {}).items():
         data = (entry.get("config") or {}).get("data") or {}
-        diff = [f"{k} {data[k]}" for k in fields if k in data and data[k] != bench.get(k)]
+        diff = [
+            f"{k} {data[k]}" for k in AUGMENTATION_FIELDS if k in data and data[k] != bench.get(k)
+        ]
         if diff:
             own.append(f"{name} ({', '.join(diff)})")
     if not own:
