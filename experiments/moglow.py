@@ -56,6 +56,7 @@ class Config:
     dropout_keeps_last: bool = False  # history dropout never drops x_{t-1} (an ablation)
     history_noise: float = 0.0  # std of training noise on the history poses (standardised)
     residual_world: bool = False  # residual taken in the world: planted feet change by 0
+    world_joints: str = "all"  # with residual_world: "all" joints or the "feet" only
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -222,6 +223,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         dropout_keeps_last=config.dropout_keeps_last,
         history_noise=config.history_noise,
         residual_world=config.residual_world,
+        world_joints=config.world_joints,
         rngs=key,
     )
 

@@ -25,7 +25,7 @@ from flax import nnx
 from motionflows.config import DataConfig, Scope, TrainConfig
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.deprecation import key_first
-from motionflows.models.vae_lstm import SAMPLERS, VAELSTM, l1_penalty
+from motionflows.models.vae_lstm import PRIORS, SAMPLERS, VAELSTM, l1_penalty
 from motionflows.models.validation import check_sample_args
 from motionflows.nets.vae import kernel_for_fps
 
@@ -64,6 +64,10 @@ class Config:
     # "recurrent": the paper's Algorithm 1 (only z_1 is random); "prior": ancestral samples
     # of the model the ELBO is trained on (a latent per pooled step); see VAELSTM
     sampler: str = "recurrent"
+    # p(z): "standard" N(0, I) per pooled step (the paper's) or "learned" (an LSTM over the
+    # earlier latents and the control; our option, docs/readme/vae_lstm.md)
+    prior: str = "standard"
+    prior_hidden: int = 128  # the learned prior's LSTM units
 
     def __post_init__(self):
         if self.data.window % 4:
@@ -76,6 +80,8 @@ class Config:
             raise ValueError(f"iwae_samples {bad} not allowed; choose from {ALLOWED_IWAE_K}")
         if self.sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {SAMPLERS}, got {self.sampler!r}")
+        if self.prior not in PRIORS:
+            raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
         if self.kernel is not None and (self.kernel < 1 or self.kernel % 2 == 0):
             raise ValueError(f"kernel must be a positive odd integer or None, got {self.kernel}")
 
@@ -120,11 +126,12 @@ PRESETS: dict[str, Config] = {
         iwae_samples=(1, 10, 100),
     ),
     # At most 60 minutes of training on 2 CPU cores (docs/readme/cpu_budget.md): the quick
-    # model trained 16x longer with a decaying learning rate (16 min on the idle EPYC;
-    # 6000 steps slid 13 % more with a 17 % higher pose FD on the unseen performer), sampled
-    # from the model it trains (a latent per pooled step): Algorithm 1's samples barely
-    # vary (4 mm under one control on the unseen performer, 33 mm with "prior", natural
-    # 29 mm; docs/readme/vae_lstm.md).
+    # model trained 16x longer with a decaying learning rate (6000 steps slid 13 % more with
+    # a 17 % higher pose FD on the unseen performer), sampled from the model it trains:
+    # Algorithm 1's samples barely vary (4 mm under one control on the unseen performer,
+    # 33 mm with "prior", natural 29 mm), and with a learned prior, whose latents follow each
+    # other, the figure steps instead of being dragged (foot sliding 0.22 against 0.83 m/s
+    # at 6000 steps; docs/readme/vae_lstm.md#a-learned-prior).
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10),
         train=TrainConfig(
@@ -134,6 +141,7 @@ PRESETS: dict[str, Config] = {
         ),
         iwae_samples=(1, 10),
         sampler="prior",
+        prior="learned",
     ),
     # Seconds: tests and the benchmark's smoke budget.
     "smoke": Config(
@@ -184,6 +192,8 @@ def build(config: Config, *, key: jax.Array) -> VAELSTM:
         elbo_samples=config.elbo_samples,
         sampler_iwae_samples=config.sampler_iwae_samples,
         sampler=config.sampler,
+        prior=config.prior,
+        prior_hidden=config.prior_hidden,
         rngs=nnx.Rngs(key),
     )
 

@@ -382,13 +382,14 @@ def test_inference_copy_stores_conditioner_weights_in_bfloat16(conditioner):
     np.testing.assert_allclose(x0, approx[:, 0], rtol=1e-5, atol=1e-5)
 
 
-def _world_model(seed=0):
+def _world_model(seed=0, world_joints="all"):
     """A residual_world MoGlow on the real feature sizes (63, 3) with non-trivial units."""
     from motionflows.data.names import CONTROL_DIM, POSE_DIM
 
     rng = np.random.default_rng(seed)
     m = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
-               residual_world=True, rngs=jax.random.key(seed))  # fmt: skip
+               residual_world=True, world_joints=world_joints,
+               rngs=jax.random.key(seed))  # fmt: skip
     m = perturbed(m, jax.random.key(seed + 100), scale=0.05)
     return m.with_units(
         rng.normal(0, 0.3, POSE_DIM), rng.uniform(0.05, 0.4, POSE_DIM),
@@ -408,10 +409,11 @@ def _world_data(model, b=2, t=8, seed=1):
     return pose, control, (u[:d], u[d : 2 * d], u[2 * d : 2 * d + 3], u[2 * d + 3 :])
 
 
-def test_residual_world_is_exact_and_one_map_for_training_and_sampling():
+@pytest.mark.parametrize("world_joints", ["all", "feet"])
+def test_residual_world_is_exact_and_one_map_for_training_and_sampling(world_joints):
     """The world residual is a bijection with the exact log-det (jacfwd), the sequence pass
     equals the frame steps, and the sampler inverts it frame by frame."""
-    model = _world_model()
+    model = _world_model(world_joints=world_joints)
     pose, control, _ = _world_data(model, b=1, t=5)
 
     def f(flat):
@@ -455,9 +457,22 @@ def test_residual_world_flows_zero_for_joints_still_in_the_world():
     np.testing.assert_allclose(z, z_zero, atol=2e-4)
     z_plain, _ = model.flow.inverse_and_log_det(targets - prev, context=cond)
     assert np.abs(np.asarray(z_plain - z_zero)).max() > 0.1
+    # world_joints="feet": the ankles and toes flow 0, every other joint its plain change
+    from motionflows.data.names import FOOT_JOINTS
+
+    feet = _world_model(seed=2, world_joints="feet")
+    z_feet, _ = feet.inverse_and_log_det(pose, context=control, scope="window")
+    is_foot = np.isin(np.arange(63) // 3, FOOT_JOINTS)
+    mixed = jnp.where(is_foot, 0.0, targets - prev)
+    z_mixed, _ = feet.flow.inverse_and_log_det(mixed, context=cond)
+    np.testing.assert_allclose(z_feet, z_mixed, atol=2e-4)
+    assert np.abs(np.asarray(z_feet - z_zero)).max() > 0.1
 
 
 def test_residual_world_needs_its_units_and_the_motion_features():
+    with pytest.raises(ValueError, match="world_joints must be one of"):
+        MoGlow(63, 3, residual=True, residual_world=True, world_joints="hands",
+               rngs=jax.random.key(0))  # fmt: skip
     with pytest.raises(ValueError, match="needs residual=True"):
         MoGlow(63, 3, residual_world=True, rngs=jax.random.key(0))
     with pytest.raises(ValueError, match="pose_dim=63"):

@@ -18,10 +18,12 @@ from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.vae_lstm import (
     VAELSTM,
     diag_normal_log_prob,
+    kl_diag_normal,
     kl_to_standard_normal,
     l1_penalty,
 )
 from motionflows.nets.vae import kernel_for_fps, random_unpool2
+from tests.params import perturbed
 
 TINY = dict(latent_dim=8, control_hidden=8, control_features=8, pose_hidden=8,
             pose_features=16, decoder_hidden=8)  # fmt: skip
@@ -247,6 +249,92 @@ def test_prior_sampler_draws_the_trained_model_with_a_latent_per_pooled_step():
         _tiny(sampler="mean")
     with pytest.raises(ValueError, match="sampler must be one of"):
         E.Config(sampler="mean")
+
+
+def test_kl_between_diagonal_normals_matches_monte_carlo():
+    k1, k2, k3, k4, k5 = jax.random.split(jax.random.key(4), 5)
+    mean, p_mean = jax.random.normal(k1, (6,)), jax.random.normal(k2, (6,)) * 1.5
+    log_std, p_log_std = jax.random.normal(k3, (6,)) * 0.5, jax.random.normal(k4, (6,)) * 0.5
+    z = mean + jnp.exp(log_std) * jax.random.normal(k5, (200_000, 6))
+    mc = (diag_normal_log_prob(z, mean, log_std) - diag_normal_log_prob(z, p_mean, p_log_std)).mean(
+        0
+    )
+    exact = kl_diag_normal(mean, log_std, p_mean, p_log_std)
+    assert np.all(np.abs(np.asarray(mc - exact)) < 0.03 + 0.01 * np.abs(np.asarray(exact)))
+    assert float(exact.sum()) > 1.0
+    np.testing.assert_allclose(
+        kl_diag_normal(mean, log_std, 0.0, 0.0), kl_to_standard_normal(mean, log_std), rtol=1e-6
+    )
+
+
+def _learned(seed=0, **kw) -> VAELSTM:
+    """A tiny VAE-LSTM with the learned prior, every parameter (its zero head too) perturbed."""
+    model = _tiny(seed, prior="learned", prior_hidden=12, **kw)
+    return perturbed(model, jax.random.key(seed + 50), scale=0.3)
+
+
+def test_learned_prior_starts_standard_and_is_causal():
+    """Untrained, the learned prior is N(0, I) (its head is zero): the ELBO equals the standard
+    model's. Trained (perturbed), step t's parameters depend on z_{<t} only."""
+    x, c = _data(jax.random.key(2), 3, 16)
+    standard, fresh = _tiny(), _tiny(prior="learned")
+    key = jax.random.key(0)
+    np.testing.assert_allclose(fresh.elbo(x, c, key), standard.elbo(x, c, key), rtol=1e-6)
+    model = _learned()
+    h = model.encode_control(c)
+    z = jax.random.normal(jax.random.key(1), (3, 4, 8))
+    jac = jax.jacfwd(lambda z: model.latent_prior_net(z, h)[0])(z)  # (B, N, D, B, N, D)
+    per_step = np.abs(np.asarray(jac)).sum(axis=(0, 2, 3, 5))  # (N out, N in)
+    assert np.all(np.triu(per_step) == 0)  # no step reads its own latent or later ones
+    assert np.all(np.diag(per_step, k=-1) > 1e-3)  # ... and each reads the one before
+    with pytest.raises(ValueError, match="prior must be one of"):
+        _tiny(prior="flat")
+    with pytest.raises(ValueError, match="prior must be one of"):
+        E.Config(prior="flat")
+
+
+def test_learned_prior_samples_the_density_it_scores():
+    """The ancestral sampler and the teacher-forced density are one model: at temperature 0
+    every z_t is the mean the density gives it from the z before; at temperature 1 the
+    standardised draws (z_t - mu_t) / sigma_t are N(0, 1); seeded steps are kept and the rest
+    follow them; the KL and the IWAE weights use this density."""
+    model = _learned(sampler="prior")
+    _, c = _data(jax.random.key(0), 256, 16)
+    h = model.encode_control(c)
+    prior = model.latent_prior_net
+
+    cold = prior.sample(jax.random.key(3), h, temperature=0.0)
+    mean, _ = prior(cold, h)
+    np.testing.assert_allclose(cold, mean, rtol=1e-5, atol=1e-5)
+    assert float(jnp.abs(cold[:, 1:] - cold[:, :1]).max()) > 1e-2  # not a constant
+
+    z = prior.sample(jax.random.key(4), h, temperature=1.0)
+    mean, log_std = prior(z, h)
+    eps = np.asarray((z - mean) * jnp.exp(-log_std))
+    assert abs(eps.mean()) < 0.02 and abs(eps.std() - 1.0) < 0.02
+    assert float(jnp.abs(mean[:, 1:]).mean()) > 0.05  # a prior that is not N(0, I)
+
+    seed = jax.random.normal(jax.random.key(5), (256, 2, 8))
+    seeded = prior.sample(jax.random.key(4), h, temperature=0.0, seed=seed)
+    np.testing.assert_array_equal(seeded[:, :2], seed)
+    np.testing.assert_allclose(seeded, prior(seeded, h)[0].at[:, :2].set(seed), atol=1e-5)
+
+    x = model.sample(jax.random.key(6), c[:4])
+    mu, log_std_q = model.posterior(x)
+    terms = model.elbo_terms(x, c[:4], jax.random.key(7))
+    kz = jax.random.split(jax.random.key(7), 4)[2]
+    zq = mu + jnp.exp(log_std_q) * jax.random.normal(kz, mu.shape)
+    p_mean, p_log_std = prior(zq, model.encode_control(c[:4]))
+    kl = kl_diag_normal(mu, log_std_q, p_mean, p_log_std).sum(axis=(1, 2))
+    np.testing.assert_allclose(terms["kl"], kl, rtol=1e-5)
+    logw = model.log_weights(x, c[:4], jax.random.key(8), 1)[0]
+    zk = mu + jnp.exp(log_std_q) * jax.random.normal(
+        jax.random.split(jax.random.key(8), 1)[0], mu.shape
+    )
+    log_p = diag_normal_log_prob(zk, *prior(zk, model.encode_control(c[:4]))).sum(axis=(1, 2))
+    log_q = diag_normal_log_prob(zk, mu, log_std_q).sum(axis=(1, 2))
+    log_lik = model.log_likelihood(x, model.decode(model.canvas(zk, model.encode_control(c[:4]))))
+    np.testing.assert_allclose(logw, log_lik + log_p - log_q, rtol=1e-4)
 
 
 def test_faithful_mode_sigma_floor_unit_variance_and_unpooling():

@@ -73,7 +73,7 @@ from motionflows.bijectors import (
     coupling_sizes,
 )
 from motionflows.data.features import carry_to_next_root
-from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.data.names import CONTROL_DIM, FOOT_JOINTS, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, StudentT
 from motionflows.models.validation import check_input, check_temperature
@@ -92,6 +92,12 @@ __all__ = [
     "import_stylegestures",
     "load_stylegestures_checkpoint",
 ]
+
+WORLD_JOINTS: tuple[str, ...] = ("all", "feet")
+"""Values of ``MoGlow(world_joints=...)``: the joints whose residual ``residual_world`` takes
+in the world."""
+_FEET_CHANNELS = np.isin(np.arange(POSE_DIM) // 3, FOOT_JOINTS)
+"""(63,) bool: the x, y, z channels of the ankles and toes."""
 
 
 # ----------------------------------------------------------------------------- conditions
@@ -240,6 +246,11 @@ class MoGlow(nnx.Module):
         root's motion. Still a shift by a function of the history and the controls: log-det
         0. Needs D = 63, C = 3 and the standardiser's statistics (:meth:`with_units`; the
         defaults, mean 0 and std 1, mean the data are in metres and m/frame, rad/frame).
+      world_joints: with ``residual_world``, whose change is taken in the world: ``"all"``
+        joints, or the ``"feet"`` only (ankles and toes, ``data.names.FOOT_JOINTS``; every
+        other joint's change stays in the root frame, x_t - x_{t-1}). Both are ablations no
+        preset uses: they slide more than the root-frame residual
+        (docs/readme/moglow_quality.md#foot-sliding-the-control-carried-the-gait-cycle).
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -269,6 +280,7 @@ class MoGlow(nnx.Module):
         dropout_keeps_last: bool = False,
         history_noise: float = 0.0,
         residual_world: bool = False,
+        world_joints: str = "all",
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -290,6 +302,10 @@ class MoGlow(nnx.Module):
             )
         if residual_world and not residual:
             raise ValueError("residual_world=True needs residual=True (it changes what is flowed)")
+        if world_joints not in WORLD_JOINTS:
+            raise ValueError(
+                f"world_joints must be one of {', '.join(WORLD_JOINTS)}, got {world_joints!r}"
+            )
         if residual_world and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
             raise ValueError(
                 f"residual_world needs the motion features (pose_dim={POSE_DIM} joint "
@@ -313,6 +329,7 @@ class MoGlow(nnx.Module):
         self.dropout_keeps_last = bool(dropout_keeps_last)
         self.history_noise = float(history_noise)
         self.residual_world = bool(residual_world)
+        self.world_joints = world_joints
         if self.residual_world:  # [pose mean, pose std, control mean, control std]
             self.units = Fixed(
                 jnp.concatenate(
@@ -362,8 +379,10 @@ class MoGlow(nnx.Module):
         c_mean, c_std = units[2 * d : 2 * d + c], units[2 * d + c :]
         start = tau * d + (tau - 1) * c  # c_{t-1}: the last history control
         control = c_mean + c_std * cond[..., start : start + c]
-        moved = carry_to_next_root(p_mean + p_std * previous, control)
-        return (moved - p_mean) / p_std
+        moved = (carry_to_next_root(p_mean + p_std * previous, control) - p_mean) / p_std
+        if self.world_joints == "feet":
+            return jnp.where(_FEET_CHANNELS, moved, previous)
+        return moved
 
     def _difference(self) -> Difference:
         """The ``residual`` map: x_t - x_{t-1}, or with ``residual_world`` the carried one."""

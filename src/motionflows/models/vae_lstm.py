@@ -31,6 +31,14 @@ steps, decoder in training mode) are proper lower bounds on ``log p(x | c)`` of 
 (nats per window, standardised space). The sampler of the paper (Algorithm 1, the
 recurrent mode) is a *different* generative model, ``z_1 ~ N(0, I)`` and a deterministic
 recurrence; its density is not what the bounds measure (see docs/readme/vae_lstm.md).
+
+**Priors.** ``prior="standard"`` (the paper's): p(z) = prod_t N(z_t; 0, I). ``prior="learned"``
+(our option, :class:`motionflows.nets.latent_prior.LatentPrior`): p(z | h) = prod_t
+N(z_t; mu_t, diag sigma_t^2) with (mu_t, log sigma_t) from an LSTM over z_{<t} and h_{<=t},
+so the latents of successive pooled steps, and the gait they decode to, can follow each
+other. The KL term of the ELBO is then KL(q(z_t | x) || p(z_t | z_{<t}, h)), analytic per
+step at a z_{<t} drawn from q (an unbiased one-sample estimate of KL(q || p)); every bound
+above holds with this p(z | h) in place of N(0, I).
 """
 
 from __future__ import annotations
@@ -45,10 +53,14 @@ from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal
 from motionflows.models.validation import check_input, check_temperature
+from motionflows.nets.latent_prior import LatentPrior
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
 SAMPLERS = ("recurrent", "prior")
 """How :meth:`VAELSTM.sample` draws: the paper's Algorithm 1, or ancestral sampling."""
+PRIORS = ("standard", "learned")
+"""p(z) of :class:`VAELSTM`: N(0, I) per pooled step (the paper's), or a learned
+autoregressive prior (:class:`~motionflows.nets.latent_prior.LatentPrior`)."""
 
 
 def diag_normal_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
@@ -59,6 +71,17 @@ def diag_normal_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> j
 def kl_to_standard_normal(mean: jax.Array, log_std: jax.Array) -> jax.Array:
     """Elementwise KL(N(mean, sigma^2) || N(0, 1)) = (sigma^2 + mean^2 - 1) / 2 - log sigma."""
     return 0.5 * (jnp.exp(2.0 * log_std) + jnp.square(mean) - 1.0) - log_std
+
+
+def kl_diag_normal(
+    mean: jax.Array, log_std: jax.Array, p_mean: jax.Array, p_log_std: jax.Array
+) -> jax.Array:
+    """Elementwise KL(N(m, s^2) || N(m_p, s_p^2)) = log(s_p / s) + (s^2 + (m - m_p)^2) /
+    (2 s_p^2) - 1/2; with m_p = 0, s_p = 1 it is :func:`kl_to_standard_normal`."""
+    ratio = jnp.exp(2.0 * (log_std - p_log_std))
+    return 0.5 * (ratio + jnp.square((mean - p_mean) * jnp.exp(-p_log_std)) - 1.0) + (
+        p_log_std - log_std
+    )
 
 
 class ModifiedLSTMCell(nnx.Module):
@@ -107,10 +130,14 @@ class VAELSTM(nnx.Module):
       sampler_iwae_samples: the K values of the sampler-model bound that ``evaluate``
         reports (``sampler_iwae_<K>``; empty = none).
       sampler: how :meth:`sample` draws. ``"recurrent"`` (the paper's Algorithm 1): one
-        z_1 ~ N(0, I), then the canvas recurs on itself, c_t = cell(c_{t-1}, h_t), so only
+        z_1 ~ p(z_1), then the canvas recurs on itself, c_t = cell(c_{t-1}, h_t), so only
         z_1 is random. ``"prior"``: the model that training fits and the ELBO bounds,
-        z_t ~ N(0, I) at every pooled step and c_t = cell(z_t, h_t) (ancestral sampling of
+        z ~ p(z) (every pooled step) and c_t = cell(z_t, h_t) (ancestral sampling of
         p(z) p(x | z, c), decoder mean).
+      prior: p(z): ``"standard"`` (N(0, I) per pooled step, the paper's) or ``"learned"``
+        (an LSTM over the earlier latents and the encoded control gives each step's
+        N(mu_t, diag sigma_t^2); :class:`~motionflows.nets.latent_prior.LatentPrior`).
+      prior_hidden: the learned prior's LSTM units.
     """
 
     def __init__(
@@ -133,6 +160,8 @@ class VAELSTM(nnx.Module):
         elbo_samples: int = 1,
         sampler_iwae_samples: tuple[int, ...] = (),
         sampler: str = "recurrent",
+        prior: str = "standard",
+        prior_hidden: int = 128,
         rngs: nnx.Rngs,
     ):
         if kernel is None:
@@ -149,7 +178,10 @@ class VAELSTM(nnx.Module):
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         if sampler not in SAMPLERS:
             raise ValueError(f"sampler must be one of {SAMPLERS}, got {sampler!r}")
+        if prior not in PRIORS:
+            raise ValueError(f"prior must be one of {PRIORS}, got {prior!r}")
         self.sampler = sampler
+        self.prior = prior
         self.kernel = int(kernel)
         self.fps = float(fps)
         self.latent_dim = int(latent_dim)
@@ -173,6 +205,10 @@ class VAELSTM(nnx.Module):
             latent_dim, decoder_hidden, POSE_DIM, kernel, random_unpool=faithful, rngs=rngs
         )
         self.out_log_std = nnx.Param(jnp.zeros((POSE_DIM,), jnp.float32))
+        if prior == "learned":
+            self.latent_prior_net = LatentPrior(
+                latent_dim, control_features, prior_hidden, rngs=rngs
+            )
 
     def conv_kernel_sizes(self) -> set[int]:
         """The temporal widths of every conv layer (one value: ``kernel``)."""
@@ -261,9 +297,31 @@ class VAELSTM(nnx.Module):
             return self.out_log_std[...]
         return jnp.zeros((POSE_DIM,), jnp.float32)
 
-    def latent_prior(self) -> Normal:
-        """p(z) = N(0, I) over the (N, D) latents of a window, any number N of pooled steps."""
-        return Normal((None, self.latent_dim))
+    def latent_prior(self, z: jax.Array, h: jax.Array) -> Normal:
+        """p(z | h) over the (N, D) latents of a window, evaluated at the latents z (B, N, D)
+        with the encoded control h (B, N, H): N(0, I) (``prior="standard"``), or the learned
+        prior's N(mu_t, diag sigma_t^2), each step's parameters from z_{<t} and h_{<=t}."""
+        if self.prior == "standard":
+            return Normal((None, self.latent_dim))
+        mean, log_std = self.latent_prior_net(z, h)
+        return Normal((None, self.latent_dim), loc=mean, log_scale=log_std)
+
+    def _kl(self, mu, log_std, z, h) -> jax.Array:
+        """KL(q(z_t | x) || p(z_t | z_{<t}, h)) summed over steps and latents (B,), at the
+        earlier latents z drawn from q (analytic per step)."""
+        if self.prior == "standard":
+            return kl_to_standard_normal(mu, log_std).sum(axis=(1, 2))
+        p_mean, p_log_std = self.latent_prior_net(z, h)
+        return kl_diag_normal(mu, log_std, p_mean, p_log_std).sum(axis=(1, 2))
+
+    def _draw_latents(self, key, h, temperature, seed=None) -> jax.Array:
+        """z (B, N, D) from the prior (std scaled by ``temperature``); the first S steps are
+        ``seed`` (B, S, D) when given."""
+        if self.prior == "learned":
+            return self.latent_prior_net.sample(key, h, temperature=temperature, seed=seed)
+        b, n = h.shape[:2]
+        z = temperature * jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)
+        return z if seed is None else z.at[:, : seed.shape[1]].set(seed)
 
     def log_likelihood(self, x: jax.Array, mean: jax.Array) -> jax.Array:
         """log p(x | z, c) summed over frames and channels: (B, T, 63) -> (B,)."""
@@ -274,7 +332,8 @@ class VAELSTM(nnx.Module):
         self, x: jax.Array, c: jax.Array, key: jax.Array, *, train: bool = False
     ) -> dict[str, jax.Array]:
         """One-sample ELBO pieces per window (B,): ``log_lik`` = log p(x|z,c) at z ~ q,
-        ``kl`` = sum over pooled steps and latents of KL(q(z_t|x) || N(0, I)) (analytic),
+        ``kl`` = sum over pooled steps and latents of KL(q(z_t|x) || p(z_t | z_{<t}, h))
+        (analytic per step; N(0, I) with the standard prior),
         ``elbo`` = log_lik - kl. ``train=True`` enables dropout (and fresh unpool masks)."""
         x, c = self._check(x, c, "VAELSTM.elbo")
         kd_c, kd_x, kz, ku = jax.random.split(key, 4)
@@ -285,7 +344,7 @@ class VAELSTM(nnx.Module):
         z = mu + jnp.exp(log_std) * jax.random.normal(kz, mu.shape, mu.dtype)
         mean = self.decode(self.canvas(z, h), ku)
         log_lik = self.log_likelihood(x, mean)
-        kl = kl_to_standard_normal(mu, log_std).sum(axis=(1, 2))
+        kl = self._kl(mu, log_std, z, h)
         return {"log_lik": log_lik, "kl": kl, "elbo": log_lik - kl}
 
     def elbo(
@@ -301,20 +360,20 @@ class VAELSTM(nnx.Module):
         return jax.lax.map(lambda k: self.elbo_terms(x, c, k)["elbo"], keys).mean(axis=0)
 
     def log_weights(self, x: jax.Array, c: jax.Array, key: jax.Array, num_samples: int):
-        """Importance log-weights log p(x|z_k,c) + log p(z_k) - log q(z_k|x), z_k ~ q(z|x):
+        """Importance log-weights log p(x|z_k,c) + log p(z_k|h) - log q(z_k|x), z_k ~ q(z|x):
         (num_samples, B). Evaluation mode (no dropout); the decoder is in training mode
         (s = z_t), the model the bounds refer to."""
         x, c = self._check(x, c, "VAELSTM.iwae_bound")
         h = self.encode_control(c)
         mu, log_std = self.posterior(x)
-        prior = self.latent_prior()
+        standard = Normal((None, self.latent_dim))
 
         def one(k):
             eps = jax.random.normal(k, mu.shape, mu.dtype)
             z = mu + jnp.exp(log_std) * eps
             # q(z | x) through the reparameterisation: log N(eps; 0, I) - sum(log sigma)
-            log_q = prior.log_prob(eps) - log_std.sum(axis=(1, 2))
-            log_p = prior.log_prob(z)
+            log_q = standard.log_prob(eps) - log_std.sum(axis=(1, 2))
+            log_p = self.latent_prior(z, h).log_prob(z)
             return self.log_likelihood(x, self.decode(self.canvas(z, h))) + log_p - log_q
 
         keys = jax.random.split(key, num_samples)
@@ -333,7 +392,7 @@ class VAELSTM(nnx.Module):
 
     def sampler_log_weights(self, x: jax.Array, c: jax.Array, key: jax.Array, num_samples: int):
         """Importance log-weights for the *sampler's* model (Algorithm 1 plus the output
-        noise): p_rec(x | c) = int N(z_1; 0, I) N(x; m_rec(z_1, c), diag sigma_x^2) dz_1,
+        noise): p_rec(x | c) = int p(z_1 | h) N(x; m_rec(z_1, c), diag sigma_x^2) dz_1,
         with m_rec the decoder of the recurrent canvas. Proposal: q(z_1 | x), the
         inference network's first pooled step. Returns (num_samples, B).
 
@@ -346,13 +405,13 @@ class VAELSTM(nnx.Module):
         mu, log_std = self.posterior(x)
         mu1, ls1 = mu[:, :1], log_std[:, :1]
         rest = jnp.zeros((x.shape[0], h.shape[1] - 1, self.latent_dim), mu.dtype)
-        prior = self.latent_prior()
+        standard = Normal((None, self.latent_dim))
 
         def one(k):
             eps = jax.random.normal(k, mu1.shape, mu1.dtype)
             z1 = mu1 + jnp.exp(ls1) * eps
-            log_q = prior.log_prob(eps) - ls1.sum(axis=(1, 2))
-            log_p = prior.log_prob(z1)
+            log_q = standard.log_prob(eps) - ls1.sum(axis=(1, 2))
+            log_p = self.latent_prior(z1, h[:, :1]).log_prob(z1)
             canvas = self.canvas(jnp.concatenate([z1, rest], axis=1), h, recurrent=True)
             return self.log_likelihood(x, self.decode(canvas)) + log_p - log_q
 
@@ -383,9 +442,10 @@ class VAELSTM(nnx.Module):
         """Poses for a control, by the model's ``sampler``: control (B, T, 3) -> poses
         (B, T, 63), standardised; the output is the decoder mean (no observation noise).
 
-        ``"recurrent"`` (Algorithm 1): z_1 ~ N(0, temperature^2 I), recurrent canvas.
-        ``"prior"``: z_t ~ N(0, temperature^2 I) at each of the T/4 pooled steps, the
-        training-mode canvas c_t = cell(z_t, h_t). With ``seed_history`` (B, S, 63)
+        ``"recurrent"`` (Algorithm 1): z_1 ~ p(z_1 | h) (std scaled by ``temperature``),
+        recurrent canvas. ``"prior"``: z ~ p(z | h) at all T/4 pooled steps (the learned
+        prior draws them in order; std scaled by ``temperature``), the training-mode canvas
+        c_t = cell(z_t, h_t). With ``seed_history`` (B, S, 63)
         (``seed_frames=`` is its deprecated old name), S a positive multiple of 4 and <= T,
         the latents of the first S/4 steps are drawn from the posterior q(z | seed frames)
         (std scaled by ``temperature``; the recurrent sampler reads only z_1); the returned
@@ -406,10 +466,10 @@ class VAELSTM(nnx.Module):
         n = h.shape[1]
         if self.sampler == "prior":
             return self._sample_prior(key, h, temperature, seed_history)
-        eps = jax.random.normal(key, (b, 1, self.latent_dim), jnp.float32)
         if seed_history is None:
-            z1 = temperature * eps
+            z1 = self._draw_latents(key, h[:, :1], temperature)
         else:
+            eps = jax.random.normal(key, (b, 1, self.latent_dim), jnp.float32)
             mu, log_std = self._seed_posterior(seed_history, b, control.shape[1])
             z1 = mu[:, :1] + temperature * jnp.exp(log_std[:, :1]) * eps
         z = jnp.concatenate([z1, jnp.zeros((b, n - 1, self.latent_dim), z1.dtype)], axis=1)
@@ -429,15 +489,17 @@ class VAELSTM(nnx.Module):
         return self.posterior(seed_history)
 
     def _sample_prior(self, key, h, temperature, seed_history) -> jax.Array:
-        """The ``"prior"`` sampler: z (B, N, D) ~ N(0, temperature^2 I), the first S/4
-        steps from q(z | seed) when seeded; training-mode canvas; decoder mean."""
+        """The ``"prior"`` sampler: z (B, N, D) ~ p(z | h) (std scaled by ``temperature``),
+        the first S/4 steps from q(z | seed) when seeded; training-mode canvas; decoder
+        mean."""
         b, n = h.shape[:2]
-        z = temperature * jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)
+        seed = None
         if seed_history is not None:
             mu, log_std = self._seed_posterior(seed_history, b, 4 * n)
-            s = mu.shape[1]
-            z = z.at[:, :s].set(mu + jnp.exp(log_std) * z[:, :s])
-        return self.decode(self.canvas(z, h))
+            # the draw the standard prior makes for these steps, so its samples stay as before
+            eps = jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)[:, : mu.shape[1]]
+            seed = mu + jnp.exp(log_std) * (temperature * eps)
+        return self.decode(self.canvas(self._draw_latents(key, h, temperature, seed), h))
 
     def reconstruct(self, x: jax.Array, c: jax.Array) -> jax.Array:
         """Decoder mean at the posterior mean z = mu(x), training-mode canvas: (B, T, 63)."""
