@@ -130,8 +130,8 @@ PRESETS: dict[str, Config] = {
     # a 17 % higher pose FD on the unseen performer), sampled from the model it trains:
     # Algorithm 1's samples barely vary (4 mm under one control on the unseen performer,
     # 33 mm with "prior", natural 29 mm), and with a learned prior, whose latents follow each
-    # other, the figure steps instead of being dragged (foot sliding 0.22 against 0.83 m/s
-    # at 6000 steps; docs/readme/vae_lstm.md#a-learned-prior).
+    # other, the figure steps instead of being dragged (foot sliding 0.19-0.21 against
+    # 0.73 m/s on the unseen performer, two seeds; docs/readme/vae_lstm.md#a-learned-prior).
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10),
         train=TrainConfig(
