@@ -73,6 +73,11 @@ class Config:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
         if self.residual_world and not self.residual:
             raise ValueError("residual_world=True needs residual=True (--set residual=true)")
+        if self.world_joints != "all" and not self.residual_world:
+            raise ValueError(
+                f"world_joints={self.world_joints!r} needs residual_world=True "
+                "(--set residual_world=true)"
+            )
         if not self.history_noise >= 0.0:
             raise ValueError(f"history_noise must be >= 0, got {self.history_noise}")
         if self.compute_dtype not in ("float32", "bfloat16"):

@@ -473,6 +473,12 @@ def test_residual_world_needs_its_units_and_the_motion_features():
     with pytest.raises(ValueError, match="world_joints must be one of"):
         MoGlow(63, 3, residual=True, residual_world=True, world_joints="hands",
                rngs=jax.random.key(0))  # fmt: skip
+    with pytest.raises(ValueError, match="needs residual_world=True"):  # else silently unused
+        MoGlow(63, 3, residual=True, world_joints="feet", rngs=jax.random.key(0))
+    import experiments.moglow as E
+
+    with pytest.raises(ValueError, match="needs residual_world=True"):
+        E.Config(residual=True, world_joints="feet")
     with pytest.raises(ValueError, match="needs residual=True"):
         MoGlow(63, 3, residual_world=True, rngs=jax.random.key(0))
     with pytest.raises(ValueError, match="pose_dim=63"):

@@ -306,6 +306,11 @@ class MoGlow(nnx.Module):
             raise ValueError(
                 f"world_joints must be one of {', '.join(WORLD_JOINTS)}, got {world_joints!r}"
             )
+        if world_joints != "all" and not residual_world:
+            raise ValueError(
+                f"world_joints={world_joints!r} needs residual_world=True (it picks the joints "
+                "whose change residual_world takes in the world)"
+            )
         if residual_world and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
             raise ValueError(
                 f"residual_world needs the motion features (pose_dim={POSE_DIM} joint "

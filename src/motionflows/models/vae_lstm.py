@@ -70,14 +70,14 @@ def diag_normal_log_prob(x: jax.Array, mean: jax.Array, log_std: jax.Array) -> j
 
 def kl_to_standard_normal(mean: jax.Array, log_std: jax.Array) -> jax.Array:
     """Elementwise KL(N(mean, sigma^2) || N(0, 1)) = (sigma^2 + mean^2 - 1) / 2 - log sigma."""
-    return 0.5 * (jnp.exp(2.0 * log_std) + jnp.square(mean) - 1.0) - log_std
+    return kl_diag_normal(mean, log_std, 0.0, 0.0)
 
 
 def kl_diag_normal(
     mean: jax.Array, log_std: jax.Array, p_mean: jax.Array, p_log_std: jax.Array
 ) -> jax.Array:
     """Elementwise KL(N(m, s^2) || N(m_p, s_p^2)) = log(s_p / s) + (s^2 + (m - m_p)^2) /
-    (2 s_p^2) - 1/2; with m_p = 0, s_p = 1 it is :func:`kl_to_standard_normal`."""
+    (2 s_p^2) - 1/2."""
     ratio = jnp.exp(2.0 * (log_std - p_log_std))
     return 0.5 * (ratio + jnp.square((mean - p_mean) * jnp.exp(-p_log_std)) - 1.0) + (
         p_log_std - log_std
