@@ -15,7 +15,15 @@ Used for the long-run table of docs/readme/moglow_quality.md::
     python benchmarks/long_run_drift.py pretrained:moglow-bandai runs/quality/X/run \\
         --control walk-turn-run --seconds 12 --samples 8 --temperature 0.6
 
-Causal models only (the fixed-length Glow samples windows of its training length).
+and, with ``--spans`` (named stretches of the control instead of equal blocks), for the
+README's demo-control table (walk, turning walk, run of ``walk-turn-run``)::
+
+    python benchmarks/long_run_drift.py pretrained:moglow-bandai pretrained:vae_lstm-bandai \\
+        --seconds 8 --samples 64 --spans 0-2,2-4,5-8
+
+Blocks need a causal model (a rollout that can drift); ``--spans`` takes the whole-window
+models too (the VAE-LSTM; the Glow, whose samples longer than its training window are out of
+its training distribution).
 """
 
 from __future__ import annotations
@@ -34,21 +42,30 @@ from motionflows.runs import resolve_run_dir
 
 
 def drift_table(
-    pose: np.ndarray, control: np.ndarray, *, fps: float, block: int, reference: int
+    pose: np.ndarray,
+    control: np.ndarray,
+    *,
+    fps: float,
+    block: int,
+    reference: int,
+    spans: list[tuple[int, int]] | None = None,
 ) -> list[dict]:
-    """Per block of ``block`` frames: bone error, foot sliding, contact rate, jerk.
+    """Per block of ``block`` frames (or per ``(start, stop)`` frame span of ``spans``): bone
+    error, foot sliding, contact rate, jerk.
 
     pose (B, T, 63) metres, control (B, T, 3) data units; ``reference`` frames at the start
     give each sample's reference bone lengths.
     """
     bones = bone_lengths(pose)  # (B, T, 20)
     error = np.abs(bones - bones[:, :reference].mean(1, keepdims=True)).mean(-1).mean(0)
+    if spans is None:
+        spans = [(a, a + block) for a in range(0, pose.shape[1] - block + 1, block)]
     rows = []
-    for start in range(0, pose.shape[1] - block + 1, block):
-        s = slice(start, start + block)
+    for start, stop in spans:
+        s = slice(start, stop)
         rows.append(
             {
-                "seconds": [start / fps, (start + block) / fps],
+                "seconds": [start / fps, stop / fps],
                 "bone_error_m": float(error[s].mean()),
                 "foot_sliding_m_s": foot_sliding(pose[:, s], control[:, s], fps=fps),
                 "contact_rate": contact_rate(pose[:, s]),
@@ -56,6 +73,21 @@ def drift_table(
             }
         )
     return rows
+
+
+def _parse_spans(text: str, seconds: float) -> list[tuple[float, float]]:
+    """``"0-2,2-4"`` -> [(0.0, 2.0), (2.0, 4.0)], each 0 <= A < B <= ``seconds``."""
+    spans = []
+    for part in text.split(","):
+        a, sep, b = part.strip().partition("-")
+        try:
+            start, stop = float(a), float(b)
+        except ValueError:
+            raise ValueError(f"{part!r} is not A-B in seconds, e.g. 0-2") from None
+        if not sep or not 0 <= start < stop <= seconds:
+            raise ValueError(f"{part!r} must be A-B with 0 <= A < B <= --seconds ({seconds:g})")
+        spans.append((start, stop))
+    return spans
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,24 +103,48 @@ def main(argv: list[str] | None = None) -> int:
         help="default: each model's validated temperature",
     )
     p.add_argument("--block", type=float, default=2.0, help="seconds per block")
+    p.add_argument(
+        "--spans",
+        default=None,
+        help="comma-separated A-B spans in seconds (e.g. 0-2,2-4,5-8) instead of blocks",
+    )
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    try:
+        spans_s = None if args.spans is None else _parse_spans(args.spans, args.seconds)
+    except ValueError as e:
+        print(f"long_run_drift: --spans {args.spans!r}: {e}", file=sys.stderr)
+        return 2
     for spec in args.runs:
         try:
             model = PretrainedModel.from_run(resolve_run_dir(spec))
         except RunError as e:
             print(f"long_run_drift: {e}", file=sys.stderr)
             return 2
-        if model.fixed_length:
-            print(f"{spec}: a fixed-length model; long runs need a causal one", file=sys.stderr)
+        if model.fixed_length and spans_s is None:
+            print(
+                f"{spec}: a whole-window model has no rollout to drift; long runs need a "
+                "causal one (--spans scores stretches of one whole-window sample)",
+                file=sys.stderr,
+            )
             return 2
         fps = model.fps
         control = load_control(args.control, seconds=args.seconds, fps=fps)
         control = np.repeat(control[None], args.samples, 0)
         temperature = model.temperature if args.temperature is None else args.temperature
-        pose = model.sample(control, seed=args.seed, temperature=temperature)
+        try:
+            pose = model.sample(control, seed=args.seed, temperature=temperature)
+        except ValueError as e:
+            print(f"long_run_drift: {spec}: {e}", file=sys.stderr)
+            return 2
+        spans = None if spans_s is None else [(round(a * fps), round(b * fps)) for a, b in spans_s]
         rows = drift_table(
-            pose, control, fps=fps, block=round(args.block * fps), reference=round(fps)
+            pose,
+            control,
+            fps=fps,
+            block=round(args.block * fps),
+            reference=round(fps),
+            spans=spans,
         )
         print(
             json.dumps(

@@ -57,6 +57,7 @@ class Config:
     history_noise: float = 0.0  # std of training noise on the history poses (standardised)
     residual_world: bool = False  # residual taken in the world: planted feet change by 0
     world_joints: str = "all"  # with residual_world: "all" joints or the "feet" only
+    absolute_foot_heights: bool = False  # with residual: the feet's heights flowed, not changed
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -73,6 +74,8 @@ class Config:
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}")
         if self.residual_world and not self.residual:
             raise ValueError("residual_world=True needs residual=True (--set residual=true)")
+        if self.absolute_foot_heights and not self.residual:
+            raise ValueError("absolute_foot_heights=True needs residual=True (--set residual=true)")
         if self.world_joints != "all" and not self.residual_world:
             raise ValueError(
                 f"world_joints={self.world_joints!r} needs residual_world=True "
@@ -229,6 +232,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         history_noise=config.history_noise,
         residual_world=config.residual_world,
         world_joints=config.world_joints,
+        absolute_foot_heights=config.absolute_foot_heights,
         rngs=key,
     )
 

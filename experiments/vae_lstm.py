@@ -68,6 +68,7 @@ class Config:
     # earlier latents and the control; our option, docs/readme/vae_lstm.md)
     prior: str = "standard"
     prior_hidden: int = 128  # the learned prior's LSTM units
+    prior_reads_control: bool = True  # False: the learned prior reads only the earlier latents
 
     def __post_init__(self):
         if self.data.window % 4:
@@ -194,6 +195,7 @@ def build(config: Config, *, key: jax.Array) -> VAELSTM:
         sampler=config.sampler,
         prior=config.prior,
         prior_hidden=config.prior_hidden,
+        prior_reads_control=config.prior_reads_control,
         rngs=nnx.Rngs(key),
     )
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from motionflows.data.synthetic import straight_walk
 
@@ -24,3 +25,22 @@ def test_drift_table_sees_a_growing_skeleton_and_not_a_rigid_one(benchmark_scrip
     drift = [r["bone_error_m"] for r in table(grown, control, fps=clip.fps, block=40, reference=20)]
     assert all(b > a for a, b in zip(drift, drift[1:], strict=False))
     assert drift[-1] > 10 * max(r["bone_error_m"] for r in rigid)
+
+
+def test_spans_score_the_named_stretches_of_the_control(benchmark_script):
+    """``--spans`` rows are the metrics of exactly those frames; bad spans are refused."""
+    clip = straight_walk(1.2, seconds=6.0)
+    pose, control = clip.pose[None], clip.control[None]
+    script = benchmark_script("long_run_drift")
+    rows = script.drift_table(pose, control, fps=clip.fps, block=40, reference=20, spans=[(10, 50)])
+    alone = script.drift_table(
+        pose[:, 10:50], control[:, 10:50], fps=clip.fps, block=40, reference=20
+    )
+    assert rows[0]["seconds"] == [0.5, 2.5]
+    for key in ("foot_sliding_m_s", "contact_rate", "jerk_m_s3"):
+        assert rows[0][key] == alone[0][key]
+    assert script._parse_spans("0-2, 5-8", 8.0) == [(0.0, 2.0), (5.0, 8.0)]
+    for bad in ("2-1", "0-9", "walk", "3"):
+        with pytest.raises(ValueError, match="A-B"):
+            script._parse_spans(bad, 8.0)
+    assert script.main(["pretrained:moglow-bandai", "--spans", "4-2"]) == 2

@@ -487,3 +487,53 @@ def test_residual_world_needs_its_units_and_the_motion_features():
         _model().with_units(np.zeros(D), np.ones(D), np.zeros(C), np.ones(C))
     with pytest.raises(ValueError, match="positive"):
         _world_model().with_units(np.zeros(63), np.zeros(63), np.zeros(3), np.ones(3))
+
+
+def test_absolute_foot_heights_flow_the_heights_and_stay_exact():
+    """With ``absolute_foot_heights`` the ankles' and toes' heights enter the flow as they are
+    and every other channel as its change; the log-det is exact (jacfwd), the sampler inverts
+    the sequence pass, and the frame steps see the same map."""
+    from motionflows.data.names import CONTROL_DIM, FOOT_JOINTS, POSE_DIM
+
+    model = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
+                   absolute_foot_heights=True, rngs=jax.random.key(3))  # fmt: skip
+    model = perturbed(model, jax.random.key(103), scale=0.05)
+    k1, k2 = jax.random.split(jax.random.key(4))
+    pose = jax.random.normal(k1, (1, 5, POSE_DIM))
+    control = jax.random.normal(k2, (1, 5, CONTROL_DIM))
+
+    targets, cond = build_conditions(pose, control, TAU, scope="window")
+    prev = jnp.pad(pose, ((0, 0), (1, 0), (0, 0)))[:, :-1]
+    is_height = np.isin(np.arange(POSE_DIM) // 3, FOOT_JOINTS) & (np.arange(POSE_DIM) % 3 == 1)
+    assert is_height.sum() == 4
+    z, ld = model.inverse_and_log_det(pose, context=control, scope="window")
+    expected, _ = model.flow.inverse_and_log_det(
+        jnp.where(is_height, targets, targets - prev), context=cond
+    )
+    np.testing.assert_allclose(z, expected, atol=1e-5)
+    plain = nnx.clone(model)
+    plain.absolute_foot_heights = False
+    assert (
+        np.abs(
+            np.asarray(plain.inverse_and_log_det(pose, context=control, scope="window")[0] - z)
+        ).max()
+        > 0.1
+    )
+
+    def f(flat):
+        out = model.inverse_and_log_det(flat.reshape(1, 5, -1), context=control, scope="window")
+        return out[0].reshape(-1)
+
+    _, logabs = jnp.linalg.slogdet(jax.jacfwd(f)(pose.reshape(-1)))
+    np.testing.assert_allclose(ld[0], logabs, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(model.generate(z, control), pose, atol=1e-4)
+    carry = model.initial_carry(1)
+    for t in range(5):
+        z_t, _, carry = model._frame_to_latent(targets[:, t], cond[:, t], carry)
+        np.testing.assert_allclose(z_t, z[:, t], atol=1e-4)
+    with pytest.raises(ValueError, match="needs residual=True"):
+        MoGlow(POSE_DIM, CONTROL_DIM, absolute_foot_heights=True, rngs=jax.random.key(0))
+    import experiments.moglow as E
+
+    with pytest.raises(ValueError, match="needs residual=True"):
+        E.Config(absolute_foot_heights=True)

@@ -287,6 +287,15 @@ def test_learned_prior_starts_standard_and_is_causal():
     per_step = np.abs(np.asarray(jac)).sum(axis=(0, 2, 3, 5))  # (N out, N in)
     assert np.all(np.triu(per_step) == 0)  # no step reads its own latent or later ones
     assert np.all(np.diag(per_step, k=-1) > 1e-3)  # ... and each reads the one before
+    # it reads the control; with prior_reads_control=False it does not, in scoring or sampling
+    reads_h = jax.jacfwd(lambda h: model.latent_prior_net(z, h)[0])(h)
+    assert float(jnp.abs(reads_h).max()) > 1e-3
+    blind = _learned(prior_reads_control=False).latent_prior_net
+    other_h = h + jax.random.normal(jax.random.key(3), h.shape)
+    np.testing.assert_array_equal(blind(z, h)[0], blind(z, other_h)[0])
+    assert float(jnp.abs(blind(z, h)[0][:, 1:]).max()) > 1e-2  # still a prior of z_{<t}
+    draw = blind.sample(jax.random.key(4), h)
+    np.testing.assert_array_equal(draw, blind.sample(jax.random.key(4), other_h))
     with pytest.raises(ValueError, match="prior must be one of"):
         _tiny(prior="flat")
     with pytest.raises(ValueError, match="prior must be one of"):

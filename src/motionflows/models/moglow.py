@@ -98,6 +98,8 @@ WORLD_JOINTS: tuple[str, ...] = ("all", "feet")
 in the world."""
 _FEET_CHANNELS = np.isin(np.arange(POSE_DIM) // 3, FOOT_JOINTS)
 """(63,) bool: the x, y, z channels of the ankles and toes."""
+_FOOT_HEIGHT_CHANNELS = _FEET_CHANNELS & (np.arange(POSE_DIM) % 3 == 1)
+"""(63,) bool: the heights (y) of the ankles and toes."""
 
 
 # ----------------------------------------------------------------------------- conditions
@@ -251,6 +253,11 @@ class MoGlow(nnx.Module):
         other joint's change stays in the root frame, x_t - x_{t-1}). Both are ablations no
         preset uses: they slide more than the root-frame residual
         (docs/readme/moglow_quality.md#foot-sliding-the-control-carried-the-gait-cycle).
+      absolute_foot_heights: with ``residual``, the ankles' and toes' heights are flowed as
+        they are, not as their change: u_t = x_t there (the previous pose's value is replaced
+        by 0, still a shift by a function of the history: log-det 0), so the flow can put a
+        planted foot's density at the floor instead of integrating its height from frame to
+        frame (our option, an ablation; docs/readme/moglow_quality.md).
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -281,6 +288,7 @@ class MoGlow(nnx.Module):
         history_noise: float = 0.0,
         residual_world: bool = False,
         world_joints: str = "all",
+        absolute_foot_heights: bool = False,
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -311,6 +319,16 @@ class MoGlow(nnx.Module):
                 f"world_joints={world_joints!r} needs residual_world=True (it picks the joints "
                 "whose change residual_world takes in the world)"
             )
+        if absolute_foot_heights and not residual:
+            raise ValueError(
+                "absolute_foot_heights=True needs residual=True (it keeps the feet's heights "
+                "out of the change that residual flows)"
+            )
+        if absolute_foot_heights and int(pose_dim) != POSE_DIM:
+            raise ValueError(
+                f"absolute_foot_heights needs the motion features (pose_dim={POSE_DIM}), "
+                f"got pose_dim={pose_dim}"
+            )
         if residual_world and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
             raise ValueError(
                 f"residual_world needs the motion features (pose_dim={POSE_DIM} joint "
@@ -335,6 +353,7 @@ class MoGlow(nnx.Module):
         self.history_noise = float(history_noise)
         self.residual_world = bool(residual_world)
         self.world_joints = world_joints
+        self.absolute_foot_heights = bool(absolute_foot_heights)
         if self.residual_world:  # [pose mean, pose std, control mean, control std]
             self.units = Fixed(
                 jnp.concatenate(
@@ -389,9 +408,19 @@ class MoGlow(nnx.Module):
             return jnp.where(_FEET_CHANNELS, moved, previous)
         return moved
 
+    def _previous(self, previous: Array, cond: Array) -> Array:
+        """What the ``residual`` change is taken from: x_{t-1} carried (``residual_world``),
+        with the feet's heights 0 (``absolute_foot_heights``)."""
+        if self.residual_world:
+            previous = self._carry_previous(previous, cond)
+        if self.absolute_foot_heights:
+            previous = jnp.where(_FOOT_HEIGHT_CHANNELS, 0.0, previous)
+        return previous
+
     def _difference(self) -> Difference:
-        """The ``residual`` map: x_t - x_{t-1}, or with ``residual_world`` the carried one."""
-        return Difference(self.pose_dim, self._carry_previous if self.residual_world else None)
+        """The ``residual`` map: u_t = x_t - previous(x_{t-1}) (:meth:`_previous`)."""
+        moves = self.residual_world or self.absolute_foot_heights
+        return Difference(self.pose_dim, self._previous if moves else None)
 
     # -- validation
 

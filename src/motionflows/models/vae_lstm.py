@@ -138,6 +138,8 @@ class VAELSTM(nnx.Module):
         (an LSTM over the earlier latents and the encoded control gives each step's
         N(mu_t, diag sigma_t^2); :class:`~motionflows.nets.latent_prior.LatentPrior`).
       prior_hidden: the learned prior's LSTM units.
+      prior_reads_control: whether the learned prior reads the encoded control h (True), or
+        only the earlier latents, p(z_t | z_{<t}) (False).
     """
 
     def __init__(
@@ -162,6 +164,7 @@ class VAELSTM(nnx.Module):
         sampler: str = "recurrent",
         prior: str = "standard",
         prior_hidden: int = 128,
+        prior_reads_control: bool = True,
         rngs: nnx.Rngs,
     ):
         if kernel is None:
@@ -206,9 +209,8 @@ class VAELSTM(nnx.Module):
         )
         self.out_log_std = nnx.Param(jnp.zeros((POSE_DIM,), jnp.float32))
         if prior == "learned":
-            self.latent_prior_net = LatentPrior(
-                latent_dim, control_features, prior_hidden, rngs=rngs
-            )
+            context = control_features if prior_reads_control else 0
+            self.latent_prior_net = LatentPrior(latent_dim, context, prior_hidden, rngs=rngs)
 
     def conv_kernel_sizes(self) -> set[int]:
         """The temporal widths of every conv layer (one value: ``kernel``)."""

@@ -6,7 +6,8 @@ For latents z (B, N, D), one per pooled step, and per-step conditioning features
     (mu_t, log sigma_t) = W s_t + b                                  (zero-initialised)
     p(z | h) = prod_t N(z_t; mu_t, diag sigma_t^2)
 
-so step t reads the earlier latents and the control up to t, never z_t or later ones. The
+so step t reads the earlier latents and the control up to t, never z_t or later ones
+(``context_dim=0``: the earlier latents only, s_t = LSTM(s_{t-1}, z_{t-1})). The
 head starts at zero: an untrained prior is N(0, I) at every step, the paper's. This is the
 "learned prior" of sequential VAEs (e.g. Denton & Fergus 2018's SVG-LP), our option, not
 Habibie et al.'s: with N(0, I) at every step, ancestral samples draw each 0.2 s of motion
@@ -33,7 +34,10 @@ __all__ = ["LatentPrior"]
 
 
 class LatentPrior(nnx.Module):
-    """p(z_t | z_{<t}, h_{<=t}) = N(mu_t, diag sigma_t^2) from an LSTM over pooled steps."""
+    """p(z_t | z_{<t}, h_{<=t}) = N(mu_t, diag sigma_t^2) from an LSTM over pooled steps.
+
+    ``context_dim=0`` leaves h out: p(z_t | z_{<t}), the features are then read only for
+    their shape."""
 
     def __init__(self, latent_dim: int, context_dim: int, hidden: int = 128, *, rngs: nnx.Rngs):
         self.latent_dim = int(latent_dim)
@@ -51,7 +55,7 @@ class LatentPrior(nnx.Module):
         """(mean, log_std), each (B, N, D), of every step given the latents z (B, N, D) before
         it (teacher forcing) and the features h (B, N, H)."""
         previous = jnp.pad(z, ((0, 0), (1, 0), (0, 0)))[:, :-1]
-        y, _ = self.lstm(previous, context=h)
+        y, _ = self.lstm(previous, context=h if self.context_dim else None)
         return self._split(self.head(y))
 
     def sample(
@@ -79,7 +83,8 @@ class LatentPrior(nnx.Module):
         def step(carry, inputs):
             state, previous = carry
             h_t, eps_t, given_t, is_given_t = inputs
-            y, state = self.lstm.step(jnp.concatenate([previous, h_t], axis=-1), state)
+            inputs_t = jnp.concatenate([previous, h_t], -1) if self.context_dim else previous
+            y, state = self.lstm.step(inputs_t, state)
             mean, log_std = self._split(self.head(y))
             z_t = jnp.where(is_given_t, given_t, mean + temperature * jnp.exp(log_std) * eps_t)
             return (state, z_t), z_t

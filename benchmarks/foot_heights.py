@@ -1,0 +1,121 @@
+"""Where a model's feet are when they should be on the floor: the lowest foot's height per
+second, beside the ground truth's.
+
+Real feet touch the floor (y = 0 in the features) at least once a second while walking or
+running, so the lowest foot height of each 1 s block is ~0 in every block. A sampler whose
+stance height wanders (a ``residual`` MoGlow integrates its height changes) has blocks whose
+lowest foot floats above or sinks below the floor; the calibrated contact rule, which
+measures heights from each window's 5th-percentile floor, then misses stance frames
+(a low contact rate) and the foot sliding it reports is of fewer, less certain contacts.
+
+For the takes ``--takes`` (default: every Bandai take of the performer D2-C in
+``../shared/data``) cut into 4 s windows at 20 fps, and each run (a run directory or
+``pretrained:NAME``) sampled on those windows' controls, it prints one JSON object per
+source:
+
+* ``block_min_height_cm``: mean and std, over every window's 1 s blocks, of the lowest foot
+  height in the block (cm; ground truth ~0 and ~0), and ``within_window_std_cm``, its std
+  within a window (the wander over 4 s);
+* ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
+  window's floor (the contact rule's floor);
+* ``contact_rate`` (the calibrated rule).
+
+Used for docs/readme/moglow_quality.md (stance heights)::
+
+    python benchmarks/foot_heights.py pretrained:moglow-bandai pretrained:vae_lstm-bandai
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import platform
+import sys
+
+import numpy as np
+
+from motionflows.data.features import clip_from_bvh
+from motionflows.data.pipeline import make_windows
+from motionflows.errors import RunError
+from motionflows.evaluation.motion import (
+    FLOOR_MAX_OFFSET_M,
+    FLOOR_PERCENTILE,
+    _foot_heights,
+    _joints,
+    contact_rate,
+)
+from motionflows.pretrained.model import PretrainedModel
+from motionflows.runs import resolve_run_dir
+
+SHARED = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data")
+DEFAULT_TAKES = (  # the performer D2-C: the masculine and normal styles of dataset 2
+    f"{SHARED}/bandai_locomotion_*/dataset-2_*_masculine_*.bvh",
+    f"{SHARED}/bandai_locomotion_*/dataset-2_*_normal_*.bvh",
+)
+FPS, WINDOW, HOP = 20.0, 80, 40
+
+
+def stance_heights(pose: np.ndarray, *, fps: float) -> dict:
+    """The block and floor statistics above for poses (N, T, 63) in metres."""
+    heights = _foot_heights(_joints(np.asarray(pose, np.float64)))  # (N, T, 2)
+    n, t = heights.shape[:2]
+    block = round(fps)
+    lowest = heights[:, : t - t % block].min(-1).reshape(n, -1, block).min(-1) * 100.0
+    flat = heights.reshape(n, -1)
+    floor = np.clip(
+        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
+    )
+    above = (flat - floor[:, None]) * 100.0
+    return {
+        "block_min_height_cm": {
+            "mean": round(float(lowest.mean()), 3),
+            "std": round(float(lowest.std()), 3),
+            "within_window_std": round(float(lowest.std(axis=1).mean()), 3),
+        },
+        "height_above_floor_cm": {
+            f"p{q}": round(float(np.percentile(above, q)), 2) for q in (10, 25, 50)
+        },
+        "contact_rate": round(contact_rate(pose), 4),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="*", help="run directories or pretrained:NAME")
+    p.add_argument("--takes", action="append", help="glob of BVH takes (repeatable)")
+    p.add_argument("--windows", type=int, default=256, help="at most this many windows")
+    p.add_argument("--temperature", type=float, default=None, help="default: each model's")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    files = sorted({f for g in (args.takes or DEFAULT_TAKES) for f in glob.glob(g)})
+    if not files:
+        hint = "pass --takes 'DIR/*.bvh' (the Bandai set: motionflows data download bandai)"
+        print(f"foot_heights: no BVH take matches {args.takes or DEFAULT_TAKES}; {hint}",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    models = []
+    for spec in args.runs:
+        try:
+            models.append((spec, PretrainedModel.from_run(resolve_run_dir(spec))))
+        except RunError as e:
+            print(f"foot_heights: {e}", file=sys.stderr)
+            return 2
+    cut, _ = make_windows([clip_from_bvh(f, FPS) for f in files], WINDOW, HOP, short="drop")
+    pick = np.linspace(0, len(cut.pose) - 1, min(args.windows, len(cut.pose))).round().astype(int)
+    pose, control = np.asarray(cut.pose)[pick], np.asarray(cut.control)[pick]
+    print(json.dumps({"takes": len(files), "windows": len(pick), "fps": FPS, "window": WINDOW,
+                      "machine": platform.processor() or platform.machine(),
+                      "load_average": os.getloadavg()[0]}))  # fmt: skip
+    print(json.dumps({"source": "ground truth", **stance_heights(pose, fps=FPS)}))
+    for spec, model in models:
+        temperature = model.temperature if args.temperature is None else args.temperature
+        sample = model.sample(control, seed=args.seed, temperature=temperature)
+        row = stance_heights(np.asarray(sample), fps=FPS)
+        print(json.dumps({"source": spec, "temperature": temperature, **row}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

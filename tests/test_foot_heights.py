@@ -1,0 +1,30 @@
+"""benchmarks/foot_heights.py: its stance statistics see feet that leave the floor."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from motionflows.data.names import FOOT_JOINTS
+from motionflows.data.synthetic import straight_walk
+
+
+def test_stance_heights_see_a_wandering_floor_and_not_a_planted_one(benchmark_script):
+    clip = straight_walk(1.2, seconds=4.0)
+    pose = clip.pose[None]
+    stats = benchmark_script("foot_heights").stance_heights
+    planted = stats(pose, fps=clip.fps)
+    assert abs(planted["block_min_height_cm"]["mean"]) < 0.5  # the synthetic feet touch y = 0
+    assert planted["block_min_height_cm"]["within_window_std"] < 0.2
+    assert planted["contact_rate"] > 0.2
+    # the same walk with both feet raised by 0, 2, 0, 2 cm in its four seconds
+    t = pose.shape[1]
+    lift = 0.02 * ((np.arange(t) // round(clip.fps)) % 2)
+    wandering = pose.reshape(1, t, 21, 3).copy()
+    wandering[:, :, list(FOOT_JOINTS), 1] += lift[None, :, None]
+    moved = stats(wandering.reshape(1, t, 63), fps=clip.fps)
+    assert abs(moved["block_min_height_cm"]["within_window_std"] - 1.0) < 0.1  # std of 0, 2, 0, 2
+    assert (
+        abs(moved["block_min_height_cm"]["mean"] - planted["block_min_height_cm"]["mean"] - 1.0)
+        < 0.1
+    )
+    assert moved["contact_rate"] < planted["contact_rate"]
