@@ -39,13 +39,7 @@ import numpy as np
 from motionflows.data.features import clip_from_bvh
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
-from motionflows.evaluation.motion import (
-    FLOOR_MAX_OFFSET_M,
-    FLOOR_PERCENTILE,
-    _foot_heights,
-    _joints,
-    contact_rate,
-)
+from motionflows.evaluation.motion import _foot_heights, _joints, contact_floor, contact_rate
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -63,11 +57,7 @@ def stance_heights(pose: np.ndarray, *, fps: float) -> dict:
     n, t = heights.shape[:2]
     block = round(fps)
     lowest = heights[:, : t - t % block].min(-1).reshape(n, -1, block).min(-1) * 100.0
-    flat = heights.reshape(n, -1)
-    floor = np.clip(
-        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
-    )
-    above = (flat - floor[:, None]) * 100.0
+    above = (heights.reshape(n, -1) - contact_floor(heights)[:, None]) * 100.0
     return {
         "block_min_height_cm": {
             "mean": round(float(lowest.mean()), 3),

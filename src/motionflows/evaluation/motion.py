@@ -192,6 +192,16 @@ def _foot_heights(joints: np.ndarray) -> np.ndarray:
 _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])
 
 
+def contact_floor(heights: np.ndarray) -> np.ndarray:
+    """The ``"floor"`` rule's floor (...,) of feet heights (..., T, 2) in metres: the
+    ``FLOOR_PERCENTILE`` of both feet's heights over the frames, clipped to
+    +-``FLOOR_MAX_OFFSET_M``."""
+    flat = heights.reshape(heights.shape[:-2] + (-1,))
+    return np.clip(
+        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
+    )
+
+
 def foot_contacts(
     pose: Any, *, rule: str = "floor", contact_height: float | None = None
 ) -> np.ndarray:
@@ -215,11 +225,7 @@ def foot_contacts(
     heights = _foot_heights(j)
     if rule == "floor":
         h = FLOOR_CONTACT_M if contact_height is None else float(contact_height)
-        flat = heights.reshape(heights.shape[:-2] + (-1,))
-        floor = np.clip(
-            np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
-        )
-        return heights < floor[..., None, None] + h
+        return heights < contact_floor(heights)[..., None, None] + h
     if rule == "absolute":
         h = ABSOLUTE_CONTACT_M if contact_height is None else float(contact_height)
         return heights < h
