@@ -21,9 +21,9 @@ README's demo-control table (walk, turning walk, run of ``walk-turn-run``)::
     python benchmarks/long_run_drift.py pretrained:moglow-bandai pretrained:vae_lstm-bandai \\
         --seconds 8 --samples 64 --spans 0-2,2-4,5-8
 
-Blocks need a causal model (a rollout that can drift); ``--spans`` takes the whole-window
-models too (the VAE-LSTM; the Glow, whose samples longer than its training window are out of
-its training distribution).
+Blocks need a model that samples any length (MoGlow, the VAE-LSTM); ``--spans`` takes the
+fixed-length Glow too, with a warning: samples longer than its training window are out of
+its training distribution.
 """
 
 from __future__ import annotations
@@ -123,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         if model.fixed_length and spans_s is None:
             print(
-                f"{spec}: a whole-window model has no rollout to drift; long runs need a "
-                "causal one (--spans scores stretches of one whole-window sample)",
+                f"{spec}: a fixed-length model has no rollout to drift; long runs need a "
+                "model that samples any length (--spans scores stretches of one sample)",
                 file=sys.stderr,
             )
             return 2

@@ -30,6 +30,7 @@ from motionflows.models.validation import check_sample_args
 
 NAME = "glow_fixed"
 CAUSAL = False  # a joint density of a fixed-length window
+FIXED_LENGTH = True  # trained on config.data.window frames; other lengths warn
 
 _LN2 = math.log(2.0)
 

@@ -168,3 +168,26 @@ def test_shipped_model_is_its_experiments_cpu_preset(name):
         preset, data=dataclasses.replace(preset.data, source="bandai", split_by="take")
     )
     assert to_dict(config_from_json(path, module.Config, saved)) == to_dict(want)
+
+
+def test_the_fixed_length_glow_samples_its_window_and_warns_at_other_lengths(tmp_path, capsys):
+    """The Glow learnt 80-frame windows: `sample` without --seconds draws one window, and a
+    length it never saw (any multiple of 4 runs) warns instead of passing silently."""
+    import warnings
+
+    glow = pretrained.load("glow-bandai")
+    assert glow.fixed_length and not pretrained.load("vae_lstm-bandai").fixed_length
+    control = np.zeros((1, glow.window, 3), np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert glow.sample(control).shape == (1, glow.window, 63)
+    with pytest.warns(UserWarning, match="trained on 80-frame windows"):
+        glow.sample(np.zeros((1, glow.window + 4, 3), np.float32))
+    args = ["sample", "pretrained:glow-bandai", "--control", "walk", "--out", str(tmp_path),
+            "--no-gif"]  # fmt: skip
+    assert cli.main(args) == 0, capsys.readouterr().err
+    (npz,) = tmp_path.glob("*.npz")
+    assert np.load(npz)["pose"].shape == (1, glow.window, 63)
+    assert "fixed-length" not in capsys.readouterr().err
+    assert cli.main([*args, "--seconds", "4.2"]) == 0
+    assert "outside what it learnt" in capsys.readouterr().err

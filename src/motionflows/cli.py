@@ -105,11 +105,12 @@ def cmd_eval(args) -> int:
 
 
 def _sample_controls(
-    args, fps: float, root_sigma_s: float
+    args, fps: float, root_sigma_s: float, window_s: float | None = None
 ) -> list[tuple[str, np.ndarray, np.ndarray | None]]:
     """(name, control (T, 3) data units, ground-truth pose (T, 63) metres or None) for
     ``--control``: a preset or .npy (no ground truth), a .bvh take or a folder of takes
-    (read with the run's root smoothing ``root_sigma_s``)."""
+    (read with the run's root smoothing ``root_sigma_s``). Without ``--seconds`` a preset
+    lasts 8 s and a take its own length, or ``window_s`` for a fixed-length model."""
     from motionflows.data.controls import load_control
 
     text = str(args.control)
@@ -120,7 +121,8 @@ def _sample_controls(
         clips, _ = read_takes(text, fps=fps, skeleton=args.skeleton, root_sigma_s=root_sigma_s)
         out = []
         for clip in clips:
-            n = len(clip) if args.seconds is None else max(1, int(round(args.seconds * fps)))
+            seconds = args.seconds if args.seconds is not None else window_s
+            n = len(clip) if seconds is None else max(1, int(round(seconds * fps)))
             pose, control = clip.pose[:n], clip.control[:n]
             if len(control) < n:  # hold the last frame: the take is shorter than --seconds
                 pad = n - len(control)
@@ -128,7 +130,7 @@ def _sample_controls(
                 pose = np.concatenate([pose, np.repeat(pose[-1:], pad, 0)])
             out.append((clip.name, control, pose))
         return out
-    seconds = 8.0 if args.seconds is None else args.seconds
+    seconds = args.seconds if args.seconds is not None else (window_s or 8.0)
     return [(path.stem, load_control(text, seconds, fps), None)]
 
 
@@ -174,7 +176,9 @@ def cmd_sample(args) -> int:
         )
     out = _output_folder(args, run_dir, "samples", run_dir / "samples")
     out.mkdir(parents=True, exist_ok=True)
-    for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s):
+    window_s = config.data.window / fps if getattr(module, "FIXED_LENGTH", False) else None
+    for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s, window_s):
+        runs.warn_if_not_window(module, config, len(control), "motionflows sample")
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )
@@ -390,7 +394,10 @@ def _add_sample(sub) -> None:
         "takes (its own control; the GIF shows the take beside the sample)",
     )
     p.add_argument(
-        "--seconds", type=float, default=None, help="length (default: 8 s, or the take's own)"
+        "--seconds",
+        type=float,
+        default=None,
+        help="length (default: 8 s, or the take's own; a fixed-length model's window)",
     )
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of --control BVH")
     p.add_argument("--num", type=int, default=1, help="number of samples")

@@ -96,6 +96,23 @@ def experiment_sample(module, model, key, control, **options):
     return module.sample(model, key, control, **options)
 
 
+def warn_if_not_window(module, config, frames: int, where: str) -> None:
+    """Warn (``UserWarning``) when a fixed-length experiment (``FIXED_LENGTH = True``: the
+    Glow) is asked for ``frames`` other than its training window: its convolutions run on
+    any multiple of 2**L frames, but a length it never saw is outside what it learnt."""
+    window = int(config.data.window)
+    if getattr(module, "FIXED_LENGTH", False) and int(frames) != window:
+        fps = float(config.data.fps)
+        warnings.warn(
+            f"{where}: {module.NAME} is a fixed-length model trained on {window}-frame windows "
+            f"({window / fps:g} s); {int(frames)} frames is outside what it learnt and may not "
+            f"move well. Ask for {window} frames, or use a causal model (moglow) for other "
+            "lengths",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def new_run_name(preset: str | None) -> str:
     return f"{preset or 'custom'}-{time.strftime('%Y%m%d-%H%M%S')}"
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.validation import check_input, check_temperature
-from motionflows.runs import experiment_sample
+from motionflows.runs import experiment_sample, warn_if_not_window
 
 INFO_FILE = "pretrained.json"
 """Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
@@ -33,7 +33,8 @@ class PretrainedModel:
       (standardised units); standardizer: the run's standardiser; temperature: the sampling
       temperature the model was validated at (``pretrained.json``; 1.0 when absent);
       scope: the likelihood scope :meth:`log_prob` returns; fps and window from the config;
-      fixed_length: True for a non-causal model (the experiment's ``CAUSAL = False``).
+      fixed_length: True for a model that samples only its training window (the
+      experiment's ``FIXED_LENGTH``: the Glow; the VAE-LSTM samples any T divisible by 4).
     """
 
     def __init__(self, module, config, model, standardizer, *, info: dict | None = None):
@@ -46,7 +47,7 @@ class PretrainedModel:
         self.fps = float(config.data.fps)
         self.window = int(config.data.window)
         self.name = getattr(module, "NAME", "model")
-        self.fixed_length = getattr(module, "CAUSAL", True) is False  # samples whole windows
+        self.fixed_length = bool(getattr(module, "FIXED_LENGTH", False))
         self._sample = jax.jit(
             lambda model, key, control, temperature: experiment_sample(
                 module, model, key, control, temperature=temperature
@@ -68,10 +69,12 @@ class PretrainedModel:
     def sample(self, control, *, seed: int = 0, temperature: float | None = None) -> np.ndarray:
         """Poses (B, T, 63) in metres for controls (B, T, 3) in m/frame and rad/frame.
 
-        ``temperature`` defaults to :attr:`temperature`; a fixed-length model (Glow) needs
-        T = :attr:`window`. The same seed gives the same motion.
+        ``temperature`` defaults to :attr:`temperature`; a fixed-length model (Glow) is
+        meant for T = :attr:`window` and warns (``UserWarning``) at other lengths. The same
+        seed gives the same motion.
         """
         control = _array(control, CONTROL_DIM, "control", "PretrainedModel.sample")
+        warn_if_not_window(self.module, self.config, control.shape[1], "PretrainedModel.sample")
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, "PretrainedModel.sample"))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
