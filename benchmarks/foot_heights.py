@@ -1,5 +1,5 @@
 """Where a model's feet are when they should be on the floor: the lowest foot's height per
-second, beside the ground truth's.
+second, and how long its strides take, beside the ground truth's.
 
 Real feet touch the floor (y = 0 in the features) at least once a second while walking or
 running, so the lowest foot height of each 1 s block is ~0 in every block. A sampler whose
@@ -18,9 +18,17 @@ source:
   within a window (the wander over 4 s);
 * ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
   window's floor (the contact rule's floor);
-* ``contact_rate`` (the calibrated rule).
+* ``contact_rate`` (the calibrated rule);
+* ``stride``: over the windows whose control walks straight ahead (0.6-2 m/s forward, under
+  0.5 rad of turn in 4 s; the same windows for every source, since they share controls),
+  the median stride period (s, :func:`motionflows.evaluation.motion.stride_period`) and
+  stride length (m, period x the control's speed), the fraction of windows with a
+  period found, and ``feet_reach_m``: the median over those windows of how far the feet
+  reach apart along the walking direction (5th to 95th percentile of the left ankle's lead
+  over the right, root frame; 0.86-0.93 of the stride length in the Bandai takes). Feet
+  that reach less far than the root travels per stride must slide to keep up.
 
-Used for docs/readme/moglow_quality.md (stance heights)::
+Used for docs/readme/moglow_quality.md (stance heights, strides)::
 
     python benchmarks/foot_heights.py pretrained:moglow-bandai pretrained:vae_lstm-bandai
 """
@@ -37,9 +45,16 @@ import sys
 import numpy as np
 
 from motionflows.data.features import clip_from_bvh
+from motionflows.data.names import FOOT_JOINTS
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
-from motionflows.evaluation.motion import _foot_heights, _joints, contact_floor, contact_rate
+from motionflows.evaluation.motion import (
+    _foot_heights,
+    _joints,
+    contact_floor,
+    contact_rate,
+    stride_period,
+)
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -71,6 +86,23 @@ def stance_heights(pose: np.ndarray, *, fps: float) -> dict:
     }
 
 
+def strides(pose: np.ndarray, control: np.ndarray, *, fps: float) -> dict:
+    """Median stride period and length over the straight-walking windows of ``control``."""
+    speed = control[..., 0].mean(-1) * fps
+    walking = (speed >= 0.6) & (speed <= 2.0) & (np.abs(control[..., 2].sum(-1)) < 0.5)
+    period = stride_period(pose[walking], fps=fps)
+    found = ~np.isnan(period)
+    joints = _joints(np.asarray(pose[walking], np.float64))
+    ahead = joints[..., FOOT_JOINTS[0], 2] - joints[..., FOOT_JOINTS[2], 2]  # left - right, fwd
+    reach = np.percentile(ahead, 95, axis=-1) - np.percentile(ahead, 5, axis=-1)
+    row = {"walking_windows": int(walking.sum()), "found": round(float(found.mean()), 3)}
+    if found.any():
+        row["period_s"] = round(float(np.median(period[found])), 3)
+        row["length_m"] = round(float(np.median((period * speed[walking])[found])), 3)
+    row["feet_reach_m"] = round(float(np.median(reach)), 3) if reach.size else None
+    return row
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="*", help="run directories or pretrained:NAME")
@@ -98,11 +130,13 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"takes": len(files), "windows": len(pick), "fps": FPS, "window": WINDOW,
                       "machine": platform.processor() or platform.machine(),
                       "load_average": os.getloadavg()[0]}))  # fmt: skip
-    print(json.dumps({"source": "ground truth", **stance_heights(pose, fps=FPS)}))
+    truth = {**stance_heights(pose, fps=FPS), "stride": strides(pose, control, fps=FPS)}
+    print(json.dumps({"source": "ground truth", **truth}))
     for spec, model in models:
         temperature = model.temperature if args.temperature is None else args.temperature
         sample = model.sample(control, seed=args.seed, temperature=temperature)
         row = stance_heights(np.asarray(sample), fps=FPS)
+        row["stride"] = strides(np.asarray(sample, np.float64), control, fps=FPS)
         print(json.dumps({"source": spec, "temperature": temperature, **row}))
     return 0
 

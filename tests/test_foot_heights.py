@@ -28,3 +28,16 @@ def test_stance_heights_see_a_wandering_floor_and_not_a_planted_one(benchmark_sc
         < 0.1
     )
     assert moved["contact_rate"] < planted["contact_rate"]
+
+
+def test_strides_are_timed_on_the_walking_windows_only(benchmark_script):
+    strides = benchmark_script("foot_heights").strides
+    walk = straight_walk(1.2, seconds=4.0)
+    stand = straight_walk(0.0, seconds=4.0)
+    pose = np.stack([walk.pose, stand.pose])
+    control = np.stack([walk.control, stand.control])
+    row = strides(pose, control, fps=walk.fps)
+    assert row["walking_windows"] == 1 and row["found"] == 1.0  # the standing window is left out
+    speed = walk.control[:, 0].mean() * walk.fps
+    assert abs(row["length_m"] - speed * row["period_s"]) < 0.01
+    assert 0.7 < row["period_s"] < 1.1  # the synthetic walk's cadence at 1.2 m/s

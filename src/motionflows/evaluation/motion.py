@@ -289,6 +289,54 @@ def contact_rate(pose: Any, *, rule: str = "floor", contact_height: float | None
     return float(np.mean(foot_contacts(pose, rule=rule, contact_height=contact_height)))
 
 
+def stride_period(
+    pose: Any,
+    *,
+    fps: float,
+    shortest: float = 0.5,
+    longest: float = 2.0,
+    min_correlation: float = 0.3,
+) -> np.ndarray:
+    """The gait's stride period (seconds; two steps, one of each foot) of each window (N,).
+
+    The feet alternate once per stride, so the horizontal vector from the right ankle to
+    the left one, d_t (root frame), repeats with the stride. Its autocorrelation
+    r(L) = corr(d_t, d_{t+L}) over lags L from ``shortest`` to ``longest`` seconds (at most
+    half the window) peaks at the period: the first local maximum within 80 % of the
+    highest, refined by a parabola through its neighbours. NaN where no peak reaches
+    ``min_correlation`` (standing, shuffling). Stride length = speed x period."""
+    _check_pose(pose)
+    j = _joints(np.asarray(pose, dtype=np.float64))
+    left, right = FOOT_JOINTS[0], FOOT_JOINTS[2]
+    d = (j[..., left, :] - j[..., right, :])[..., [0, 2]]  # (..., T, 2) horizontal
+    d = d.reshape(-1, *d.shape[-2:])
+    t = d.shape[1]
+    lags = np.arange(max(1, round(shortest * fps)), min(round(longest * fps), t // 2) + 1)
+    if lags.size < 3:
+        raise ValueError(f"stride_period needs at least {3 * round(shortest * fps)} frames")
+    r = np.empty((d.shape[0], lags.size))
+    for k, lag in enumerate(lags):
+        a, b = d[:, :-lag], d[:, lag:]
+        a = a - a.mean(1, keepdims=True)
+        b = b - b.mean(1, keepdims=True)
+        den = np.sqrt((a * a).sum((1, 2)) * (b * b).sum((1, 2)))
+        r[:, k] = (a * b).sum((1, 2)) / np.maximum(den, 1e-12)
+    out = np.full(d.shape[0], np.nan)
+    for n, rn in enumerate(r):
+        top = rn.max()
+        if top < min_correlation:
+            continue
+        peaks = [k for k in range(1, lags.size - 1) if rn[k] >= rn[k - 1] and rn[k] >= rn[k + 1]]
+        peaks = [k for k in peaks if rn[k] >= 0.8 * top]
+        if not peaks:
+            continue
+        k = peaks[0]
+        curve = rn[k - 1] - 2 * rn[k] + rn[k + 1]
+        shift = 0.5 * (rn[k - 1] - rn[k + 1]) / curve if curve < 0 else 0.0
+        out[n] = (lags[k] + shift) / float(fps)
+    return out.reshape(np.shape(pose)[:-2])
+
+
 def bone_lengths(pose: Any) -> np.ndarray:
     """Bone lengths (..., T, 20) in metres, one per non-root joint (to its parent)."""
     j = _joints(pose)
