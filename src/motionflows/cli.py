@@ -176,7 +176,7 @@ def cmd_sample(args) -> int:
         )
     out = _output_folder(args, run_dir, "samples", run_dir / "samples")
     out.mkdir(parents=True, exist_ok=True)
-    window_s = config.data.window / fps if getattr(module, "FIXED_LENGTH", False) else None
+    window_s = config.data.window / fps if runs.fixed_length(module) else None
     for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s, window_s):
         runs.warn_if_not_window(module, config, len(control), "motionflows sample")
         pose = run.draw_samples(

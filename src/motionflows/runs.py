@@ -96,12 +96,17 @@ def experiment_sample(module, model, key, control, **options):
     return module.sample(model, key, control, **options)
 
 
+def fixed_length(module) -> bool:
+    """Whether an experiment samples only its training window (``FIXED_LENGTH = True``)."""
+    return bool(getattr(module, "FIXED_LENGTH", False))
+
+
 def warn_if_not_window(module, config, frames: int, where: str) -> None:
     """Warn (``UserWarning``) when a fixed-length experiment (``FIXED_LENGTH = True``: the
     Glow) is asked for ``frames`` other than its training window: its convolutions run on
     any multiple of 2**L frames, but a length it never saw is outside what it learnt."""
     window = int(config.data.window)
-    if getattr(module, "FIXED_LENGTH", False) and int(frames) != window:
+    if fixed_length(module) and int(frames) != window:
         fps = float(config.data.fps)
         warnings.warn(
             f"{where}: {module.NAME} is a fixed-length model trained on {window}-frame windows "

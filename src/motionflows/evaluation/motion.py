@@ -312,8 +312,8 @@ def stride_period(
     d = d.reshape(-1, *d.shape[-2:])
     t = d.shape[1]
     lags = np.arange(max(1, round(shortest * fps)), min(round(longest * fps), t // 2) + 1)
-    if lags.size < 3:
-        raise ValueError(f"stride_period needs at least {3 * round(shortest * fps)} frames")
+    if lags.size < 3:  # a peak needs a lag on each side within half the window
+        raise ValueError(f"stride_period needs at least {2 * (lags[0] + 2)} frames, got {t}")
     r = np.empty((d.shape[0], lags.size))
     for k, lag in enumerate(lags):
         a, b = d[:, :-lag], d[:, lag:]

@@ -11,7 +11,7 @@ import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.validation import check_input, check_temperature
-from motionflows.runs import experiment_sample, warn_if_not_window
+from motionflows.runs import experiment_sample, fixed_length, warn_if_not_window
 
 INFO_FILE = "pretrained.json"
 """Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
@@ -47,7 +47,7 @@ class PretrainedModel:
         self.fps = float(config.data.fps)
         self.window = int(config.data.window)
         self.name = getattr(module, "NAME", "model")
-        self.fixed_length = bool(getattr(module, "FIXED_LENGTH", False))
+        self.fixed_length = fixed_length(module)
         self._sample = jax.jit(
             lambda model, key, control, temperature: experiment_sample(
                 module, model, key, control, temperature=temperature
