@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from motionflows.config import DataConfig
 from motionflows.data import clip_from_bvh
 from motionflows.data.augment import (
     augment_clips,
@@ -193,6 +194,30 @@ def test_tempo_replays_the_take_at_another_speed_with_the_same_strides():
     # augment_clips adds each training take at 1/tempo and tempo times its speed
     out = augment_clips([clip], mirror=True, reverse=False, tempo=1.25)
     assert sorted(round(c.meta.get("tempo", 1.0), 3) for c in out) == [0.8, 0.8, 1, 1, 1.25, 1.25]
+
+
+@pytest.mark.parametrize(
+    "tempo, replay, rates",
+    [
+        (1.25, "slower", [0.8]),
+        (0.8, "slower", [0.8]),
+        (1.25, "faster", [1.25]),
+        (1.0, "slower", []),
+    ],
+)
+def test_tempo_replay_keeps_one_side(tempo, replay, rates):
+    """``tempo_replay``: only the slower (longer strides for the speed) or only the faster
+    replays, whichever way ``tempo`` is written; ``tempo`` 1 stays off."""
+    clip = generate(1, 4.0, seed=6)[0]
+    out = augment_clips([clip], mirror=True, reverse=False, tempo=tempo, tempo_replay=replay)
+    got = sorted(round(c.meta.get("tempo", 1.0), 3) for c in out)
+    assert got == sorted([1, 1] + 2 * rates)
+    slow = [c for c in out if c.meta.get("tempo", 1.0) < 1]
+    assert all(len(c.pose) > len(clip.pose) for c in slow)
+    with pytest.raises(ValueError, match="tempo_replay"):
+        augment_clips([clip], mirror=False, reverse=False, tempo=1.25, tempo_replay="slow")
+    with pytest.raises(ValueError, match="data.tempo_replay"):
+        DataConfig(tempo=1.25, tempo_replay="slow")
 
 
 def test_mirror_swaps_left_right_and_turn_sign():

@@ -15,6 +15,7 @@ import types
 import typing
 from typing import Any
 
+from motionflows.data.augment import TEMPO_REPLAYS
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S, ROOT_SIGMA_S
 
 
@@ -36,8 +37,9 @@ class DataConfig:
     seed: int = 0
     root_sigma_s: float = ROOT_SIGMA_S  # root smoothing, s (features.py; Holden's: 0.05)
     # tempo augmentation: every training take also played at 1/tempo and tempo times its
-    # speed (data/augment.py; 1 = off)
+    # speed (data/augment.py; 1 = off); tempo_replay "slower" or "faster" keeps one of them
     tempo: float = 1.0
+    tempo_replay: str = "both"
 
     def __post_init__(self):
         _check_fields(self, DATA_LIMITS)
@@ -47,6 +49,10 @@ class DataConfig:
             )
         if self.split_by not in ("take", "performer"):
             raise ValueError(f"data.split_by must be 'take' or 'performer', got {self.split_by!r}")
+        if self.tempo_replay not in TEMPO_REPLAYS:
+            raise ValueError(
+                f"data.tempo_replay must be one of {list(TEMPO_REPLAYS)}, got {self.tempo_replay!r}"
+            )
 
     def load(self):
         """Build the dataset this config describes (cached on disk by the data layer)."""
@@ -67,6 +73,7 @@ class DataConfig:
             seed=self.seed,
             root_sigma_s=self.root_sigma_s,
             tempo=self.tempo,
+            tempo_replay=self.tempo_replay,
         )
 
 

@@ -18,6 +18,9 @@ Shapes: pose (..., T, 63), control (..., T, 3) with (forward, sideways, turn).
   (:func:`~motionflows.data.features.features_from_positions`: resampled, root smoothed,
   controls taken again): r = 0.8 is the same strides at 0.8 times the cadence and speed,
   (T - 1) / 0.8 frames. r = 1 gives the take back, but for its last frame.
+  :func:`augment_clips` replays at ``1 / tempo`` and/or ``tempo`` (``tempo_replay``): a
+  slower replay walks the same strides at a lower speed, so at a given speed the training
+  set holds longer strides than its performers walked; a faster one, shorter strides.
 """
 
 from __future__ import annotations
@@ -94,23 +97,41 @@ def tempo_clip(clip: Clip, rate: float, *, root_sigma_s: float = ROOT_SIGMA_S) -
     )
 
 
+TEMPO_REPLAYS: tuple[str, ...] = ("both", "slower", "faster")
+"""The values of ``tempo_replay`` (:func:`tempo_rates`)."""
+
+
+def tempo_rates(tempo: float, replay: str = "both") -> tuple[float, ...]:
+    """The replay rates of tempo augmentation: with ``tempo`` = 1.25, ``"both"`` gives
+    (0.8, 1.25), ``"slower"`` (0.8,), ``"faster"`` (1.25,); ``tempo`` and ``1 / tempo``
+    name the same pair, and ``tempo`` = 1 gives () (off)."""
+    if replay not in TEMPO_REPLAYS:
+        raise ValueError(f"tempo_replay must be one of {list(TEMPO_REPLAYS)}, got {replay!r}")
+    if not (np.isfinite(tempo) and tempo > 0):
+        raise ValueError(f"tempo must be a positive number, got {tempo}")
+    if tempo == 1.0:
+        return ()
+    slow, fast = sorted((float(tempo), 1.0 / float(tempo)))
+    return {"both": (slow, fast), "slower": (slow,), "faster": (fast,)}[replay]
+
+
 def augment_clips(
     clips: list[Clip],
     *,
     mirror: bool,
     reverse: bool,
     tempo: float = 1.0,
+    tempo_replay: str = "both",
     root_sigma_s: float = ROOT_SIGMA_S,
 ) -> list[Clip]:
     """Originals plus mirrored and/or reversed copies and, with ``tempo`` != 1, all of
-    those also played at ``1 / tempo`` and ``tempo`` times their speed (same take names:
-    splits stay by take)."""
+    those also played at the rates of :func:`tempo_rates` (``1 / tempo`` and/or ``tempo``
+    times their speed; same take names: splits stay by take)."""
+    rates = tempo_rates(tempo, tempo_replay)
     out = list(clips)
     if mirror:
         out += [mirror_clip(c) for c in clips]
     if reverse:
         out += [reverse_clip(c) for c in out]
-    if tempo != 1.0:
-        rates = (1.0 / tempo, tempo)
-        out += [tempo_clip(c, r, root_sigma_s=root_sigma_s) for r in rates for c in out]
+    out += [tempo_clip(c, r, root_sigma_s=root_sigma_s) for r in rates for c in out]
     return out

@@ -296,6 +296,7 @@ def _split_windows(
     min_frames: int | None,
     tempo: float = 1.0,
     root_sigma_s: float = ROOT_SIGMA_S,
+    tempo_replay: str = "both",
 ) -> tuple[dict[str, WindowSet], dict[str, dict]]:
     """The windows and window statistics of each split (training takes augmented first);
     raise if the training split has no window."""
@@ -304,7 +305,12 @@ def _split_windows(
         cs = split_clips[s]
         if s == "train":
             cs = augment_clips(
-                cs, mirror=mirror, reverse=reverse, tempo=tempo, root_sigma_s=root_sigma_s
+                cs,
+                mirror=mirror,
+                reverse=reverse,
+                tempo=tempo,
+                tempo_replay=tempo_replay,
+                root_sigma_s=root_sigma_s,
             )
         splits[s], stats[s] = make_windows(
             cs, int(window), int(hop), short=short, min_frames=min_frames
@@ -381,6 +387,7 @@ def load_dataset(
     cache_dir=None,
     root_sigma_s: float = ROOT_SIGMA_S,
     tempo: float = 1.0,
+    tempo_replay: str = "both",
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -408,7 +415,16 @@ def load_dataset(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
     splits, stats = _split_windows(
-        split_clips, window, hop, mirror, reverse, short, min_frames, tempo, root_sigma_s
+        split_clips,
+        window,
+        hop,
+        mirror,
+        reverse,
+        short,
+        min_frames,
+        tempo,
+        root_sigma_s,
+        tempo_replay,
     )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     _warn_dropped(dropped, window, short, min_frames)
@@ -421,7 +437,12 @@ def load_dataset(
         "window": int(window),
         "hop": int(hop),
         "split_by": split_by,
-        "augment": {"mirror": bool(mirror), "reverse": bool(reverse), "tempo": float(tempo)},
+        "augment": {
+            "mirror": bool(mirror),
+            "reverse": bool(reverse),
+            "tempo": float(tempo),
+            "tempo_replay": tempo_replay,
+        },
         **_split_info(split_clips, splits, stats, dropped),
         "seconds": sum(len(c) for c in clips) / float(fps),
         **source_info,
