@@ -63,7 +63,7 @@ def measure(files, sigma: float, shifts) -> dict:
     }
     row["contact_rate"] = round(contact_rate(pose), 4)
     for k in shifts:
-        row[f"control_shifted_{k}_frames"] = scores(pose[:, k:], control[:, :-k])
+        row[f"control_shifted_{k}_frames"] = scores(pose[:, k:], control[:, : control.shape[1] - k])
     row["window_mean_control"] = scores(
         pose, np.broadcast_to(control.mean(1, keepdims=True), control.shape)
     )

@@ -157,6 +157,26 @@ def test_bvh_source_and_performer_split(tmp_path):
     assert "S3" not in syn.info["performers"]["train"]
 
 
+def test_styles_keep_only_those_takes_in_every_split():
+    """``styles``: only the takes of the named styles (Bandai's ``style`` metadata) are
+    loaded; an unknown style, or a source without style names, is an error naming them."""
+    from motionflows.data.datasets import _with_styles
+
+    base = load_dataset("synthetic", n_clips=6, seconds=3.0, window=20, cache=False)
+    clips = [c for s in ("train", "val", "test") for c in base.clips[s]]
+    named = [
+        Clip(c.pose, c.control, c.fps, c.name, dict(c.meta, style=("old", "new")[i % 2]))
+        for i, c in enumerate(clips)
+    ]
+    kept = _with_styles(named, ("new",))
+    assert [c.name for c in kept] == [c.name for c in named[1::2]]
+    assert _with_styles(named, None) == named
+    with pytest.raises(MotionDataError, match=r"no take has style \['odd'\].*\['new', 'old'\]"):
+        _with_styles(named, ("odd", "new"))
+    with pytest.raises(MotionDataError, match="data.styles.*name none"):
+        load_dataset("synthetic", n_clips=6, seconds=3.0, window=20, cache=False, styles=["x"])
+
+
 def test_control_presets():
     for name in PRESETS:
         c = preset(name, 6.0)

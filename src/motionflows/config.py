@@ -40,6 +40,8 @@ class DataConfig:
     # speed (data/augment.py; 1 = off); tempo_replay "slower" or "faster" keeps one of them
     tempo: float = 1.0
     tempo_replay: str = "both"
+    # keep only the takes of these styles, in every split (metadata "style"; None = all)
+    styles: tuple[str, ...] | None = None
 
     def __post_init__(self):
         _check_fields(self, DATA_LIMITS)
@@ -74,6 +76,7 @@ class DataConfig:
             root_sigma_s=self.root_sigma_s,
             tempo=self.tempo,
             tempo_replay=self.tempo_replay,
+            styles=self.styles,
         )
 
 

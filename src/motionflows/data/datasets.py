@@ -8,6 +8,7 @@ each content group by a hash of their names and gives ``val_frac`` / ``test_frac
 to val / test (at least one each when a group has >= 3 takes); ``split_by="performer"``
 holds out whole performers for test (``test_performers``, default the last one in sorted
 order) and val (``val_performers``; default: a take split of the remaining performers).
+``styles`` keeps only the takes of those styles (metadata ``style``) in every split.
 Augmentation (``mirror``, ``reverse``, ``tempo``: :mod:`motionflows.data.augment`) is
 applied to the training takes only; the standardiser is fitted on the augmented training
 windows.
@@ -323,6 +324,28 @@ def _split_windows(
     return splits, stats
 
 
+def _with_styles(clips: list[Clip], styles) -> list[Clip]:
+    """The clips whose metadata ``style`` (a name, as the Bandai takes have) is in
+    ``styles``; None or empty keeps all. Raise, naming the styles there are, if one is
+    unknown."""
+    if not styles:
+        return clips
+
+    def style(c: Clip) -> str | None:
+        s = c.meta.get("style")
+        return s if isinstance(s, str) else None
+
+    have = sorted({s for c in clips if (s := style(c)) is not None})
+    unknown = sorted(set(styles) - set(have))
+    if unknown:
+        there = f"the styles of these takes are {have}" if have else "these takes name none"
+        raise MotionDataError(
+            f"data.styles: no take has style {unknown}; {there}. Give styles from that list, "
+            "or none to keep every take"
+        )
+    return [c for c in clips if style(c) in set(styles)]
+
+
 def _warn_dropped(dropped: list[str], window: int, short: str, min_frames: int | None) -> None:
     """Warn, at the caller of :func:`load_dataset`, about clips too short to be used."""
     if not dropped:
@@ -388,6 +411,7 @@ def load_dataset(
     root_sigma_s: float = ROOT_SIGMA_S,
     tempo: float = 1.0,
     tempo_replay: str = "both",
+    styles=None,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -411,6 +435,7 @@ def load_dataset(
         cache_dir=cache_dir,
         root_sigma_s=root_sigma_s,
     )
+    clips = _with_styles(clips, styles)
     split_clips = _assign_takes(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
@@ -437,6 +462,7 @@ def load_dataset(
         "window": int(window),
         "hop": int(hop),
         "split_by": split_by,
+        "styles": sorted(styles) if styles else None,
         "augment": {
             "mirror": bool(mirror),
             "reverse": bool(reverse),
