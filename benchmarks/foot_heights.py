@@ -18,7 +18,8 @@ source:
   within a window (the wander over 4 s);
 * ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
   window's floor (the contact rule's floor);
-* ``contact_rate`` (the calibrated rule);
+* ``contact_rate`` and ``foot_sliding_m_s`` (the calibrated rule, on the windows'
+  controls; for the ground truth, how much the takes' own feet slide by that rule);
 * ``stride``: over the windows whose control walks straight ahead (0.6-2 m/s forward, under
   0.5 rad of turn in 4 s; the same windows for every source, since they share controls),
   the median stride period (s, :func:`motionflows.evaluation.motion.stride_period`) and
@@ -53,6 +54,7 @@ from motionflows.evaluation.motion import (
     _joints,
     contact_floor,
     contact_rate,
+    foot_sliding,
     stride_period,
 )
 from motionflows.pretrained.model import PretrainedModel
@@ -130,14 +132,23 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"takes": len(files), "windows": len(pick), "fps": FPS, "window": WINDOW,
                       "machine": platform.processor() or platform.machine(),
                       "load_average": os.getloadavg()[0]}))  # fmt: skip
-    truth = {**stance_heights(pose, fps=FPS), "stride": strides(pose, control, fps=FPS)}
-    print(json.dumps({"source": "ground truth", **truth}))
+
+    def row(p):
+        return {
+            **stance_heights(p, fps=FPS),
+            "foot_sliding_m_s": round(float(foot_sliding(p, control, fps=FPS)), 4),
+            "stride": strides(p, control, fps=FPS),
+        }
+
+    print(json.dumps({"source": "ground truth", **row(pose)}))
     for spec, model in models:
         temperature = model.temperature if args.temperature is None else args.temperature
         sample = model.sample(control, seed=args.seed, temperature=temperature)
-        row = stance_heights(np.asarray(sample), fps=FPS)
-        row["stride"] = strides(np.asarray(sample, np.float64), control, fps=FPS)
-        print(json.dumps({"source": spec, "temperature": temperature, **row}))
+        print(
+            json.dumps(
+                {"source": spec, "temperature": temperature, **row(np.asarray(sample, np.float64))}
+            )
+        )
     return 0
 
 

@@ -150,6 +150,34 @@ def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, caps
     assert len(list(tmp_path.glob("*.npz"))) == 2
 
 
+def test_foot_lock_keeps_the_drawn_samples_and_the_demo_shows_both(
+    exported, monkeypatch, tmp_path, capsys
+):
+    """``--foot-lock`` writes the locked samples beside (never over) the drawn ones, which
+    its npz keeps as ``pose_drawn``; only the legs move. ``make demo`` writes both."""
+    from motionflows import demo
+
+    _, out = exported
+    args = ["sample", str(out), "--control", "walk", "--seconds", "1", "--num", "2",
+            "--out", str(tmp_path), "--no-gif"]  # fmt: skip
+    assert cli.main(args) == 0, capsys.readouterr().err
+    assert cli.main([*args, "--foot-lock"]) == 0, capsys.readouterr().err
+    drawn, locked = (np.load(f) for f in sorted(tmp_path.glob("*.npz")))  # "_foot-lock" last
+    assert not drawn["foot_lock"] and locked["foot_lock"]
+    np.testing.assert_array_equal(locked["pose_drawn"], drawn["pose"])
+    moved = np.abs(locked["pose"] - drawn["pose"]).reshape(2, -1, 21, 3).max(axis=(0, 1, 3))
+    assert set(np.flatnonzero(moved)) <= {2, 3, 4, 6, 7, 8}  # knees, ankles, toes
+    take = tmp_path / "take.bvh"
+    take.write_text("not read")
+    assert cli.main(["render", str(take), "--foot-lock", "--out", str(tmp_path)]) == 2
+    assert "--foot-lock holds the feet of sampled motion" in capsys.readouterr().err
+    monkeypatch.setattr(pretrained, "MODELS_DIR", out.parent)
+    monkeypatch.setattr(demo, "PRETRAINED", out.name)
+    assert demo.pretrained_demo("walk", 1.0, tmp_path / "demo", gif=False)
+    names = sorted(f.name for f in (tmp_path / "demo").glob("*.npz"))
+    assert names == [f"{out.name}_walk.npz", f"{out.name}_walk_foot-lock.npz"]
+
+
 @pytest.mark.parametrize("name", pretrained.available())
 def test_shipped_model_is_its_experiments_cpu_preset(name):
     """Each shipped model is its experiment's `cpu` preset trained on all Bandai takes (split

@@ -182,9 +182,13 @@ def cmd_sample(args) -> int:
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )
-        stem = _sample_stem(out, f"{name}_T{temperature:g}_seed{args.seed}", run_dir)
-        npz = out / f"{stem}.npz"
         extra = {} if truth is None else {"ground_truth": truth}
+        lock = "_foot-lock" if args.foot_lock else ""
+        if args.foot_lock:  # the samples as drawn stay in the npz beside the locked ones
+            extra["pose_drawn"] = pose
+            pose = _foot_lock(pose, control)
+        stem = _sample_stem(out, f"{name}_T{temperature:g}_seed{args.seed}{lock}", run_dir)
+        npz = out / f"{stem}.npz"
         np.savez(
             npz,
             pose=pose,
@@ -192,6 +196,7 @@ def cmd_sample(args) -> int:
             fps=fps,
             temperature=temperature,
             seed=args.seed,
+            foot_lock=bool(args.foot_lock),
             experiment=module.NAME,
             run_dir=str(run_dir),
             **extra,
@@ -217,6 +222,14 @@ def cmd_sample(args) -> int:
     return 0
 
 
+def _foot_lock(pose: np.ndarray, control: np.ndarray) -> np.ndarray:
+    """``--foot-lock``: poses (N, T, 63) with their planted feet held (motionflows.foot_lock)
+    on one control (T, 3) or one each (N, T, 3)."""
+    from motionflows.foot_lock import foot_lock
+
+    return foot_lock(pose, np.broadcast_to(control, pose.shape[:-1] + (3,)))
+
+
 def _render_run(args) -> int:
     """``render RUN`` / ``render pretrained:NAME``: animate one sample of a preset control."""
     from motionflows import render, runs
@@ -227,9 +240,10 @@ def _render_run(args) -> int:
     model = PretrainedModel.from_run(run_dir)
     seconds = model.window / model.fps if model.fixed_length else 8.0
     control = load_control("walk-turn-run", seconds, model.fps)
-    pose = model.sample(control[None], seed=0)[0]
+    pose = model.sample(control[None], seed=0)
+    pose = (_foot_lock(pose, control) if args.foot_lock else pose)[0]
     out = _folder(args.out, "--out")
-    stem = f"{run_dir.name}_walk-turn-run"
+    stem = f"{run_dir.name}_walk-turn-run" + ("_foot-lock" if args.foot_lock else "")
     gif = render.animate(pose, control, out / f"{stem}.gif", fps=model.fps, title=stem)
     print(f"wrote {gif}", file=sys.stderr)
     return 0
@@ -247,6 +261,11 @@ def cmd_render(args) -> int:
     if path.suffix.lower() == ".bvh":
         from motionflows.data import clip_from_bvh
 
+        if args.foot_lock:
+            raise RunError(
+                "--foot-lock holds the feet of sampled motion (a run, pretrained:NAME or an "
+                f".npz); {path.name} is a take: render it without --foot-lock"
+            )
         clip = clip_from_bvh(path, fps=args.fps, skeleton=args.skeleton)
         files = render.render_clip(clip, out)
         for f in files.values():
@@ -282,8 +301,11 @@ def cmd_render(args) -> int:
     controls = (
         control if control.ndim == 3 else np.broadcast_to(control, (len(poses), *control.shape))
     )
+    stem = path.stem
+    if args.foot_lock:
+        poses, stem = _foot_lock(poses, controls), f"{path.stem}_foot-lock"
     for i, (p, c) in enumerate(zip(poses, controls, strict=True)):
-        gif = render.animate(p, c, out / f"{path.stem}_{i}.gif", fps=fps, title=f"{path.stem} #{i}")
+        gif = render.animate(p, c, out / f"{stem}_{i}.gif", fps=fps, title=f"{stem} #{i}")
         print(f"wrote {gif}", file=sys.stderr)
     png = render.plot_controls(controls[0], out / f"{path.stem}_control.png", fps, title=path.stem)
     print(f"wrote {png}", file=sys.stderr)
@@ -411,7 +433,18 @@ def _add_sample(sub) -> None:
     p.add_argument("--out", default=None, help="output folder (default: <run>/samples)")
     p.add_argument("--checkpoint", default="best", choices=["best", "latest"])
     p.add_argument("--no-gif", action="store_true", help="only write the npz")
+    _add_foot_lock(p)
     p.set_defaults(func=cmd_sample)
+
+
+def _add_foot_lock(p) -> None:
+    p.add_argument(
+        "--foot-lock",
+        action="store_true",
+        help="hold each planted foot in place (a post-process of the samples: "
+        "motionflows.foot_lock; files get a _foot-lock suffix, an npz keeps the drawn "
+        "samples as pose_drawn)",
+    )
 
 
 def _add_render(sub) -> None:
@@ -425,6 +458,7 @@ def _add_render(sub) -> None:
     p.add_argument("--out", default="renders", help="output folder")
     p.add_argument("--fps", type=float, default=20.0)
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of a BVH file")
+    _add_foot_lock(p)
     p.set_defaults(func=cmd_render)
 
 

@@ -2,7 +2,8 @@
 
 1. Samples the ``walk-turn-run`` control (8 s) from the pretrained ``moglow-bandai`` model
    (:mod:`motionflows.pretrained`: seconds, no training) and writes the sample (npz,
-   metres), its GIF and a PNG still under ``<runs-dir>/demo/``.
+   metres), its GIF and a PNG still under ``<runs-dir>/demo/``, then the same sample with
+   its planted feet held (:mod:`motionflows.foot_lock`, files ``*_foot-lock.*``).
 2. Trains an experiment's ``quick`` preset (MoGlow by default) on the embedded synthetic
    data (progress bar with ETA on stderr), prints the test-split likelihood table
    (nats/frame in metres and bits/frame standardised), and samples and animates the same
@@ -56,6 +57,11 @@ def pretrained_demo(control_name: str, seconds: float, out: Path, *, gif: bool =
     )
     title = f"pretrained {PRETRAINED}: {control_name} (T={model.temperature:g})"
     _write(pose, control, model.fps, out, f"{PRETRAINED}_{control_name}", title, gif)
+    from motionflows.foot_lock import foot_lock
+
+    locked = foot_lock(pose, control)
+    stem = f"{PRETRAINED}_{control_name}_foot-lock"
+    _write(locked, control, model.fps, out, stem, f"{title}, foot lock", gif)
     return True
 
 
