@@ -19,7 +19,8 @@ source:
 * ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
   window's floor (the contact rule's floor);
 * ``contact_rate`` and ``foot_sliding_m_s`` (the calibrated rule, on the windows'
-  controls; for the ground truth, how much the takes' own feet slide by that rule);
+  controls; for the ground truth, how much the takes' own feet slide by that rule),
+  ``jerk`` (m/s^3, world) and ``fd_pose`` (m^2, against the ground truth windows);
 * ``stride``: over the windows whose control walks straight ahead (0.6-2 m/s forward, under
   0.5 rad of turn in 4 s; the same windows for every source, since they share controls),
   the median stride period (s, :func:`motionflows.evaluation.motion.stride_period`) and
@@ -28,6 +29,10 @@ source:
   reach apart along the walking direction (5th to 95th percentile of the left ankle's lead
   over the right, root frame; 0.86-0.93 of the stride length in the Bandai takes). Feet
   that reach less far than the root travels per stride must slide to keep up.
+
+With ``--foot-lock`` each model's row is followed by one of the same samples after
+:func:`motionflows.foot_lock.foot_lock`, with ``moved_cm``: how far the lock moved the
+joints (median, 99th percentile and maximum over the frames of each frame's largest move).
 
 Used for docs/readme/moglow_quality.md (stance heights, strides)::
 
@@ -55,8 +60,11 @@ from motionflows.evaluation.motion import (
     contact_floor,
     contact_rate,
     foot_sliding,
+    frechet_pose_distance,
+    jerk,
     stride_period,
 )
+from motionflows.foot_lock import foot_lock
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -112,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--windows", type=int, default=256, help="at most this many windows")
     p.add_argument("--temperature", type=float, default=None, help="default: each model's")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--foot-lock", action="store_true", help="also score the samples locked")
     args = p.parse_args(argv)
     files = sorted({f for g in (args.takes or DEFAULT_TAKES) for f in glob.glob(g)})
     if not files:
@@ -137,18 +146,24 @@ def main(argv: list[str] | None = None) -> int:
         return {
             **stance_heights(p, fps=FPS),
             "foot_sliding_m_s": round(float(foot_sliding(p, control, fps=FPS)), 4),
+            "jerk": round(float(jerk(p, fps=FPS, control=control)), 1),
+            "fd_pose": round(float(frechet_pose_distance(pose, p)), 4),
             "stride": strides(p, control, fps=FPS),
         }
 
     print(json.dumps({"source": "ground truth", **row(pose)}))
     for spec, model in models:
         temperature = model.temperature if args.temperature is None else args.temperature
-        sample = model.sample(control, seed=args.seed, temperature=temperature)
-        print(
-            json.dumps(
-                {"source": spec, "temperature": temperature, **row(np.asarray(sample, np.float64))}
-            )
-        )
+        sample = np.asarray(model.sample(control, seed=args.seed, temperature=temperature))
+        sample = sample.astype(np.float64)
+        print(json.dumps({"source": spec, "temperature": temperature, **row(sample)}))
+        if args.foot_lock:
+            locked = foot_lock(sample, control)
+            move = np.abs(locked - sample).max(-1).ravel() * 100.0
+            moved = {k: round(float(np.percentile(move, q)), 2) for k, q in
+                     (("p50", 50), ("p99", 99), ("max", 100))}  # fmt: skip
+            print(json.dumps({"source": f"{spec} + foot lock", "temperature": temperature,
+                              **row(locked), "moved_cm": moved}))  # fmt: skip
     return 0
 
 
