@@ -106,6 +106,10 @@ def test_dtype_jax_input_and_errors(creeping):
     assert isinstance(out, np.ndarray) and out.dtype == np.float32 and out.shape == pose[:2].shape
     with pytest.raises(ValueError, match="same leading shape"):
         foot_lock(pose[:2], control[:3])
+    bad = pose[:2].copy()
+    bad[0, 5, 7] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        foot_lock(bad, control[:2])
     with pytest.raises(ValueError, match="blend"):
         foot_lock(pose[:2], control[:2], blend=-1)
     with pytest.raises(ValueError, match=r"\(\.\.\., T, 63\)"):

@@ -71,6 +71,8 @@ def foot_lock(
     dtype = np.result_type(np.asarray(pose).dtype, np.float32)
     local = np.asarray(pose, np.float64)
     ctrl = np.asarray(control, np.float64)
+    if not (np.all(np.isfinite(local)) and np.all(np.isfinite(ctrl))):
+        raise ValueError("foot_lock: pose and control must be finite (they hold NaN or inf)")
     if local.shape[-2] < 2:
         return local.astype(dtype)
     shape = local.shape
