@@ -30,9 +30,12 @@ source:
   over the right, root frame; 0.86-0.93 of the stride length in the Bandai takes). Feet
   that reach less far than the root travels per stride must slide to keep up.
 
-With ``--foot-lock`` each model's row is followed by one of the same samples after
-:func:`motionflows.foot_lock.foot_lock`, with ``moved_cm``: how far the lock moved the
-joints (median, 99th percentile and maximum over the frames of each frame's largest move).
+With ``--foot-lock`` each model's row is followed by two of the same samples locked: by
+:func:`motionflows.foot_lock.foot_lock` and by
+:class:`motionflows.foot_lock.StreamingFootLock` (frame by frame from each window's first
+frame, as ``motionflows play --foot-lock`` does), with ``moved_cm``: how far the lock moved
+the joints (median, 99th percentile and maximum over the frames of each frame's largest
+move).
 
 Used for docs/readme/moglow_quality.md (stance heights, strides)::
 
@@ -63,8 +66,9 @@ from motionflows.evaluation.motion import (
     frechet_pose_distance,
     jerk,
     stride_period,
+    to_global,
 )
-from motionflows.foot_lock import foot_lock
+from motionflows.foot_lock import StreamingFootLock, _to_root_frame, _yaw, foot_lock
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -113,6 +117,17 @@ def strides(pose: np.ndarray, control: np.ndarray, *, fps: float) -> dict:
     return row
 
 
+def streamed_lock(pose: np.ndarray, control: np.ndarray, *, fps: float) -> np.ndarray:
+    """Poses (N, T, 63) locked frame by frame by a fresh StreamingFootLock per window."""
+    out = np.empty_like(pose)
+    for i, (p, c) in enumerate(zip(pose, control, strict=True)):
+        world, yaw = _joints(to_global(p, c)), _yaw(c)
+        lock = StreamingFootLock(fps=fps)
+        held = np.stack([lock.step(w, a) for w, a in zip(world, yaw, strict=True)])
+        out[i] = p + _to_root_frame(held - world, yaw).reshape(p.shape)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="*", help="run directories or pretrained:NAME")
@@ -157,12 +172,16 @@ def main(argv: list[str] | None = None) -> int:
         sample = np.asarray(model.sample(control, seed=args.seed, temperature=temperature))
         sample = sample.astype(np.float64)
         print(json.dumps({"source": spec, "temperature": temperature, **row(sample)}))
-        if args.foot_lock:
-            locked = foot_lock(sample, control)
+        if not args.foot_lock:
+            continue
+        for how, locked in (
+            ("foot lock", foot_lock(sample, control)),
+            ("streaming foot lock", streamed_lock(sample, control, fps=FPS)),
+        ):
             move = np.abs(locked - sample).max(-1).ravel() * 100.0
             moved = {k: round(float(np.percentile(move, q)), 2) for k, q in
                      (("p50", 50), ("p99", 99), ("max", 100))}  # fmt: skip
-            print(json.dumps({"source": f"{spec} + foot lock", "temperature": temperature,
+            print(json.dumps({"source": f"{spec} + {how}", "temperature": temperature,
                               **row(locked), "moved_cm": moved}))  # fmt: skip
     return 0
 

@@ -8,8 +8,16 @@ import pytest
 
 from motionflows.data.pipeline import make_windows
 from motionflows.data.synthetic import straight_walk
-from motionflows.evaluation.motion import bone_lengths, foot_contacts, foot_sliding
-from motionflows.foot_lock import LEGS, _stance_shift, _two_bone_ik, foot_lock
+from motionflows.evaluation.motion import bone_lengths, foot_contacts, foot_sliding, to_global
+from motionflows.foot_lock import (
+    LEGS,
+    StreamingFootLock,
+    _stance_shift,
+    _to_root_frame,
+    _two_bone_ik,
+    _yaw,
+    foot_lock,
+)
 
 FPS = 20.0
 LEG_JOINTS = (2, 3, 4, 6, 7, 8)  # knees, ankles, toes: the only joints foot_lock moves
@@ -75,6 +83,31 @@ def test_a_foot_out_of_reach_keeps_its_height_and_slides_less(walk):
     before, after = foot_sliding(pose, control, fps=FPS), foot_sliding(locked, control, fps=FPS)
     assert 0 < after < 0.95 * before
     np.testing.assert_allclose(bone_lengths(locked), bone_lengths(pose), atol=1e-6)
+
+
+def test_the_streaming_lock_sees_only_the_past_and_holds_feet_within_its_reach(creeping):
+    """Frame by frame (each frame's output fixed before the next arrives), on the creeping
+    walks: at least half the sliding goes (the 5 cm cap keeps the rest), every bone keeps
+    its length, no joint but the legs moves, and no foot is moved further than
+    ``max_shift`` from where it was drawn."""
+    pose, control = creeping
+    locked, moved = [], 0.0
+    for p, c in zip(pose, control, strict=True):
+        world, yaw = to_global(p, c).reshape(-1, 21, 3), _yaw(c)
+        lock = StreamingFootLock(fps=FPS, max_shift=0.05)
+        held = np.stack([lock.step(w, a) for w, a in zip(world, yaw, strict=True)])
+        moved = max(moved, np.abs(held[:, [3, 4, 7, 8], :] - world[:, [3, 4, 7, 8], :]).max())
+        locked.append(p + _to_root_frame(held - world, yaw).reshape(p.shape))
+    locked = np.stack(locked)
+    before = foot_sliding(pose, control, fps=FPS)
+    assert foot_sliding(locked, control, fps=FPS) < 0.5 * before  # the cap leaves some
+    np.testing.assert_allclose(bone_lengths(locked), bone_lengths(pose), atol=1e-6)
+    others = [j for j in range(21) if j not in LEG_JOINTS]
+    j_new, j_old = locked.reshape(*pose.shape[:-1], 21, 3), pose.reshape(*pose.shape[:-1], 21, 3)
+    np.testing.assert_allclose(j_new[..., others, :], j_old[..., others, :], atol=1e-12)
+    assert 0.01 < moved <= 0.05 + 1e-9
+    with pytest.raises(ValueError, match=r"\(21, 3\)"):
+        StreamingFootLock().step(np.zeros(63), 0.0)
 
 
 def test_feet_in_the_air_are_left_alone(creeping):

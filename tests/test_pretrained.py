@@ -178,6 +178,27 @@ def test_foot_lock_keeps_the_drawn_samples_and_the_demo_shows_both(
     assert names == [f"{out.name}_walk.npz", f"{out.name}_walk_foot-lock.npz"]
 
 
+def test_play_with_foot_lock_shows_and_records_the_held_feet(exported):
+    """``play --foot-lock``: each streamed frame's joints are its (held) pose placed on the
+    root path, only the legs differ from the drawn pose, and the recording keeps both."""
+    from motionflows.play import load_character
+    from motionflows.play.character import place
+
+    _, out = exported
+    character = load_character(out, temperature=0.7, foot_lock=True)
+    character.target = np.array([1.2, 0.0, 0.3])
+    for _ in range(30):
+        frame = character.step()
+        placed = place(frame["pose"], frame["position"], frame["yaw"])
+        np.testing.assert_allclose(frame["joints"], placed, atol=1e-4)
+    record = character.recording()
+    assert record["pose"].shape == record["pose_drawn"].shape == (30, 63)
+    moved = np.abs(record["pose"] - record["pose_drawn"]).reshape(30, 21, 3).max(axis=(0, 2))
+    assert set(np.flatnonzero(moved)) <= {2, 3, 4, 6, 7, 8}
+    character.reset()
+    assert character.recording()["pose"].shape == (0, 63)
+
+
 @pytest.mark.parametrize("name", pretrained.available())
 def test_shipped_model_is_its_experiments_cpu_preset(name):
     """Each shipped model is its experiment's `cpu` preset trained on all Bandai takes (split

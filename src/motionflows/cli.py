@@ -338,7 +338,13 @@ def cmd_play(args) -> int:
         check_installed()
     except ImportError as err:
         raise RunError(str(err)) from None
-    play(args.run_dir, host=args.host, port=args.port, temperature=args.temperature)
+    play(
+        args.run_dir,
+        host=args.host,
+        port=args.port,
+        temperature=args.temperature,
+        foot_lock=args.foot_lock,
+    )
     return 0
 
 
@@ -488,6 +494,12 @@ def _add_play(sub) -> None:
         default=None,
         help="initial sampling temperature (default: the validated one of a pretrained "
         "model, else 1; the page has a slider)",
+    )
+    p.add_argument(
+        "--foot-lock",
+        action="store_true",
+        help="hold planted feet, frame by frame (motionflows.foot_lock.StreamingFootLock: a "
+        "post-process; the recording keeps the drawn poses as pose_drawn)",
     )
     p.set_defaults(func=cmd_play)
 

@@ -30,16 +30,35 @@ the root frame with their controls (..., T, 3) (the layout of :mod:`motionflows.
 Every bone keeps its length of that frame; the root, the hips and the upper body are not
 touched. A post-process changes the model's samples: the library's benchmarks score the
 samples as drawn and report locked ones beside them, never instead.
+
+:class:`StreamingFootLock` does the same one frame at a time, for a stream
+(``MoGlow.stream_step``, ``motionflows play --foot-lock``), seeing only the past: a foot
+stands while its height is less than 1.5 cm above the 5th percentile of both feet's
+heights over the last 2 s (the calibrated rule on a sliding window), a stance's anchor is
+where the foot landed (its first frame: the mean needs the future), so no fade is needed
+before a stance, and the shift of its last frame fades out over ``blend`` frames after it.
+A foot that creeps further than ``max_shift`` (5 cm) from its anchor drags the anchor along
+at that distance: without the future a stance cannot share its correction out, and a
+held foot the body has left behind would have to jump when it lifts.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
 
 from motionflows.data.names import NUM_JOINTS
-from motionflows.evaluation.motion import _check_control, _check_pose, foot_contacts, to_global
+from motionflows.evaluation.motion import (
+    FLOOR_CONTACT_M,
+    FLOOR_MAX_OFFSET_M,
+    FLOOR_PERCENTILE,
+    _check_control,
+    _check_pose,
+    foot_contacts,
+    to_global,
+)
 
 LEGS: tuple[tuple[int, int, int, int], ...] = ((1, 2, 3, 4), (5, 6, 7, 8))
 """(hip, knee, ankle, toe) joint indices of the left and the right leg."""
@@ -80,19 +99,93 @@ def foot_lock(
     contact = foot_contacts(local, rule=rule, contact_height=contact_height)  # (..., T, 2)
     yaw = _yaw(ctrl)
     new = world.copy()
-    for side, (hip, knee, ankle, toe) in enumerate(LEGS):
-        centre = 0.5 * (world[..., ankle, :] + world[..., toe, :])
+    for side, leg in enumerate(LEGS):
+        centre = 0.5 * (world[..., leg[2], :] + world[..., leg[3], :])
         shift = _stance_shift(centre[..., [0, 2]], contact[..., side], blend)
-        target = world[..., ankle, :].copy()
-        target[..., [0, 2]] += shift
-        knee_at, ankle_at = _two_bone_ik(
-            world[..., hip, :], world[..., knee, :], world[..., ankle, :], target, yaw
-        )
-        new[..., knee, :] = knee_at
-        new[..., ankle, :] = ankle_at
-        new[..., toe, :] = world[..., toe, :] + (ankle_at - world[..., ankle, :])
+        _shift_leg(new, world, leg, shift, yaw)
     delta = _to_root_frame(new - world, yaw)
     return (local + delta.reshape(shape)).astype(dtype)
+
+
+class StreamingFootLock:
+    """Foot locking of a stream of world frames, one at a time (see the module docstring).
+
+    ``lock.step(joints, yaw)``: world joints (21, 3) in metres of frame t (root frame
+    placed by ``p_t + R_y(yaw_t)``, as ``motionflows.play`` and
+    :func:`~motionflows.evaluation.motion.to_global` place them) and the root's heading
+    yaw_t -> the joints with the planted feet held. ``reset()`` starts a new stream."""
+
+    def __init__(
+        self,
+        *,
+        blend: int = 3,
+        fps: float = 20.0,
+        floor_seconds: float = 2.0,
+        max_shift: float = 0.05,
+    ):
+        if not (isinstance(blend, int | np.integer) and blend >= 0):
+            raise ValueError(f"blend must be a number of frames >= 0, got {blend!r}")
+        if not (np.isfinite(fps) and fps > 0 and np.isfinite(floor_seconds) and floor_seconds > 0):
+            raise ValueError(f"fps and floor_seconds must be > 0, got {fps}, {floor_seconds}")
+        self.blend, self.max_shift = int(blend), float(max_shift)
+        self._window = max(1, int(round(2 * floor_seconds * fps)))  # heights of both feet
+        self.reset()
+
+    def reset(self) -> None:
+        self._heights: deque = deque(maxlen=self._window)
+        self._anchor: list[np.ndarray | None] = [None, None]
+        self._last = np.zeros((2, 2))  # the shift of each foot's latest stance frame
+        self._since = [self.blend + 1] * 2  # frames since that stance frame
+
+    def step(self, joints: Any, yaw: float) -> np.ndarray:
+        world = np.asarray(joints, np.float64)
+        if world.shape != (NUM_JOINTS, 3) or not np.all(np.isfinite(world)):
+            raise ValueError(
+                f"StreamingFootLock.step: joints must be finite world positions "
+                f"({NUM_JOINTS}, 3) in metres, got shape {world.shape}"
+            )
+        heights = [min(world[leg[2], 1], world[leg[3], 1]) for leg in LEGS]
+        self._heights.extend(heights)
+        floor = np.clip(
+            np.percentile(np.asarray(self._heights), FLOOR_PERCENTILE),
+            -FLOOR_MAX_OFFSET_M,
+            FLOOR_MAX_OFFSET_M,
+        )
+        new = world.copy()
+        for side, leg in enumerate(LEGS):
+            centre = 0.5 * (world[leg[2], [0, 2]] + world[leg[3], [0, 2]])
+            if heights[side] < floor + FLOOR_CONTACT_M:
+                if self._anchor[side] is None:  # the foot lands: hold it here
+                    self._anchor[side] = centre
+                shift = self._anchor[side] - centre
+                size = float(np.hypot(*shift))
+                if size > self.max_shift:  # too far to hold: the anchor follows the foot
+                    shift = shift * (self.max_shift / size)
+                    self._anchor[side] = centre + shift
+                self._last[side] = shift
+                self._since[side] = 0
+                shift = self._last[side]
+            else:
+                self._anchor[side] = None
+                self._since[side] += 1
+                shift = self._last[side] * max(0.0, 1.0 - self._since[side] / (self.blend + 1))
+            if np.any(shift):
+                _shift_leg(new, world, leg, shift, np.float64(yaw))
+        return new
+
+
+def _shift_leg(new: np.ndarray, world: np.ndarray, leg, shift: np.ndarray, yaw) -> None:
+    """Write into ``new`` (..., 21, 3) the knee, ankle and toe of ``leg`` re-solved so the
+    ankle moves horizontally by ``shift`` (..., 2) (x, z) from ``world`` (steps 4 and 5)."""
+    hip, knee, ankle, toe = leg
+    target = world[..., ankle, :].copy()
+    target[..., [0, 2]] += shift
+    knee_at, ankle_at = _two_bone_ik(
+        world[..., hip, :], world[..., knee, :], world[..., ankle, :], target, yaw
+    )
+    new[..., knee, :] = knee_at
+    new[..., ankle, :] = ankle_at
+    new[..., toe, :] = world[..., toe, :] + (ankle_at - world[..., ankle, :])
 
 
 def _yaw(control: np.ndarray) -> np.ndarray:

@@ -1,6 +1,7 @@
 """``motionflows play``: steer a streaming model's character in real time from a web page.
 
     motionflows play runs/moglow/quick-1 [--port N] [--host 127.0.0.1] [--temperature T]
+                                         [--foot-lock]
 
 A local server (Starlette + uvicorn, the optional extra ``motionflows[play]``) steps the
 model with ``stream_step`` at the run's fps on a thread of its own and streams each frame
@@ -22,9 +23,11 @@ from motionflows.errors import RunError
 from motionflows.play.character import Character
 
 
-def load_character(run: str | Path, *, temperature: float = 1.0, seed: int = 0) -> Character:
+def load_character(
+    run: str | Path, *, temperature: float = 1.0, seed: int = 0, foot_lock: bool = False
+) -> Character:
     """The character of a run directory or ``pretrained:NAME`` (best checkpoint), compiled
-    and ready to stream."""
+    and ready to stream (``foot_lock``: see :class:`Character`)."""
     from motionflows import runs, training
 
     run_dir = runs.resolve_run_dir(run)
@@ -40,6 +43,7 @@ def load_character(run: str | Path, *, temperature: float = 1.0, seed: int = 0) 
         float(config.data.fps),
         temperature=temperature,
         seed=seed,
+        foot_lock=foot_lock,
     )
     character.warm_up()
     return character
@@ -52,6 +56,7 @@ def play(
     port: int = 0,
     temperature: float | None = None,
     seed: int = 0,
+    foot_lock: bool = False,
 ) -> None:
     """Load ``run``, print the page's URL and serve it until Ctrl-C (opens nothing).
 
@@ -79,7 +84,7 @@ def play(
     except OSError as err:
         raise RunError(str(err)) from None
     try:
-        character = load_character(run_dir, temperature=temperature, seed=seed)
+        character = load_character(run_dir, temperature=temperature, seed=seed, foot_lock=foot_lock)
         server.serve(character, sock=sock, info={"run": str(run_dir)})
     finally:
         sock.close()

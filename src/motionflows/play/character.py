@@ -31,6 +31,7 @@ import numpy as np
 from flax import nnx
 
 from motionflows.data.names import NUM_JOINTS, POSE_DIM
+from motionflows.foot_lock import StreamingFootLock, _to_root_frame
 from motionflows.inference import streaming_model
 
 RAMP_SECONDS = 0.25
@@ -93,10 +94,20 @@ class Character:
       fps: frames per second of the run's data.
       temperature: latent temperature (1 samples the model, 0 its mode path).
       seed: seed of the latent draws; each reset folds in a new episode number.
+      foot_lock: hold planted feet (:class:`~motionflows.foot_lock.StreamingFootLock`, a
+        post-process of each frame; the recording then keeps the drawn poses as
+        ``pose_drawn`` beside the shown ones).
     """
 
     def __init__(
-        self, model: Any, standardizer: Any, fps: float, *, temperature: float = 1.0, seed=0
+        self,
+        model: Any,
+        standardizer: Any,
+        fps: float,
+        *,
+        temperature: float = 1.0,
+        seed=0,
+        foot_lock: bool = False,
     ):
         if not (hasattr(model, "init_stream") and hasattr(model, "stream_step")):
             raise ValueError(
@@ -109,6 +120,7 @@ class Character:
         self.temperature = float(temperature)
         self._step = _jitted_step(model)
         self._base_key = jax.random.key(seed)
+        self.foot_lock = StreamingFootLock(fps=self.fps) if foot_lock else None
         self._lock = threading.Lock()
         self.episode = -1
         self.reset()
@@ -123,8 +135,11 @@ class Character:
         self.applied = np.zeros(3)
         self.position, self.yaw = np.zeros(3), 0.0
         self.t = 0
+        if self.foot_lock is not None:
+            self.foot_lock.reset()
         with self._lock:
             self._poses: deque = deque(maxlen=MAX_RECORD_FRAMES)
+            self._drawn: deque = deque(maxlen=MAX_RECORD_FRAMES)
             self._controls: deque = deque(maxlen=MAX_RECORD_FRAMES)
 
     def warm_up(self) -> None:
@@ -135,7 +150,8 @@ class Character:
     def step(self) -> dict:
         """Generate frame t, place it, advance the root; returns the frame's fields.
 
-        ``joints`` (21, 3) world metres; ``pose`` (63,) root-frame metres; ``control``
+        ``joints`` (21, 3) world metres; ``pose`` (63,) root-frame metres (both with the
+        planted feet held under ``foot_lock``, which adds ``pose_drawn``); ``control``
         (3,) m/frame, rad/frame (the one moving frame t to t + 1); ``position`` (3,) and
         ``yaw`` the root of frame t; ``applied`` (3,) m/s, m/s, rad/s.
         """
@@ -151,17 +167,25 @@ class Character:
         if not np.all(np.isfinite(pose)):
             # a diverged frame is never drawn; the next reset starts clean
             raise FloatingPointError("the model produced a non-finite pose")
+        joints, drawn = place(pose, self.position, self.yaw), pose
+        if self.foot_lock is not None:
+            held = self.foot_lock.step(joints, self.yaw)
+            pose = drawn + _to_root_frame(held - joints, np.float64(self.yaw)).reshape(-1)
+            joints, pose = held, pose.astype(np.float32)
         frame = {
             "t": self.t,
-            "joints": place(pose, self.position, self.yaw),
+            "joints": joints,
             "pose": pose,
             "control": control,
             "position": self.position.copy(),
             "yaw": self.yaw,
             "applied": self.applied.copy(),
         }
+        if self.foot_lock is not None:
+            frame["pose_drawn"] = drawn
         with self._lock:
             self._poses.append(pose)
+            self._drawn.append(drawn)
             self._controls.append(control)
         self.position, self.yaw = advance(self.position, self.yaw, control)
         self.t += 1
@@ -169,8 +193,14 @@ class Character:
 
     def recording(self) -> dict[str, np.ndarray]:
         """The frames since the last reset: ``pose`` (T, 63) root-frame metres and
-        ``control`` (T, 3) m/frame, rad/frame (what ``motionflows render`` reads), ``fps``."""
+        ``control`` (T, 3) m/frame, rad/frame (what ``motionflows render`` reads), ``fps``;
+        under ``foot_lock`` ``pose`` is the shown (locked) one and ``pose_drawn`` the
+        model's."""
         with self._lock:
             pose = np.asarray(self._poses, np.float32).reshape(-1, POSE_DIM)
+            drawn = np.asarray(self._drawn, np.float32).reshape(-1, POSE_DIM)
             control = np.asarray(self._controls, np.float32).reshape(-1, 3)
-        return {"pose": pose, "control": control, "fps": np.float32(self.fps)}
+        out = {"pose": pose, "control": control, "fps": np.float32(self.fps)}
+        if self.foot_lock is not None:
+            out["pose_drawn"] = drawn
+        return out
