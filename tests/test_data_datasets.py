@@ -171,6 +171,7 @@ def test_styles_keep_only_those_takes_in_every_split():
     kept = _with_styles(named, ("new",))
     assert [c.name for c in kept] == [c.name for c in named[1::2]]
     assert _with_styles(named, None) == named
+    assert _with_styles(named, "new") == kept  # one style by name, not its letters
     with pytest.raises(MotionDataError, match=r"no take has style \['odd'\].*\['new', 'old'\]"):
         _with_styles(named, ("odd", "new"))
     with pytest.raises(MotionDataError, match="data.styles.*name none"):

@@ -108,6 +108,8 @@ def test_the_streaming_lock_sees_only_the_past_and_holds_feet_within_its_reach(c
     assert 0.01 < moved <= 0.05 + 1e-9
     with pytest.raises(ValueError, match=r"\(21, 3\)"):
         StreamingFootLock().step(np.zeros(63), 0.0)
+    with pytest.raises(ValueError, match="max_shift"):
+        StreamingFootLock(max_shift=0.0)
 
 
 def test_feet_in_the_air_are_left_alone(creeping):

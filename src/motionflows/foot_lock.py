@@ -28,8 +28,9 @@ the root frame with their controls (..., T, 3) (the layout of :mod:`motionflows.
    ankle, so the foot keeps its shape.
 
 Every bone keeps its length of that frame; the root, the hips and the upper body are not
-touched. A post-process changes the model's samples: the library's benchmarks score the
-samples as drawn and report locked ones beside them, never instead.
+touched. A post-process changes the model's samples: the bench and the quality targets
+score the samples as drawn (``benchmarks/foot_heights.py --foot-lock`` reports locked ones
+beside them, never instead).
 
 :class:`StreamingFootLock` does the same one frame at a time, for a stream
 (``MoGlow.stream_step``, ``motionflows play --foot-lock``), seeing only the past: a foot
@@ -125,8 +126,10 @@ class StreamingFootLock:
     ):
         if not (isinstance(blend, int | np.integer) and blend >= 0):
             raise ValueError(f"blend must be a number of frames >= 0, got {blend!r}")
-        if not (np.isfinite(fps) and fps > 0 and np.isfinite(floor_seconds) and floor_seconds > 0):
-            raise ValueError(f"fps and floor_seconds must be > 0, got {fps}, {floor_seconds}")
+        numbers = {"fps": fps, "floor_seconds": floor_seconds, "max_shift": max_shift}
+        bad = {k: v for k, v in numbers.items() if not (np.isfinite(v) and v > 0)}
+        if bad:
+            raise ValueError(f"StreamingFootLock: {bad} must be finite numbers > 0")
         self.blend, self.max_shift = int(blend), float(max_shift)
         self._window = max(1, int(round(2 * floor_seconds * fps)))  # heights of both feet
         self.reset()
@@ -164,7 +167,6 @@ class StreamingFootLock:
                     self._anchor[side] = centre + shift
                 self._last[side] = shift
                 self._since[side] = 0
-                shift = self._last[side]
             else:
                 self._anchor[side] = None
                 self._since[side] += 1

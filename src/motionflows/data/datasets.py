@@ -330,6 +330,7 @@ def _with_styles(clips: list[Clip], styles) -> list[Clip]:
     unknown."""
     if not styles:
         return clips
+    styles = (styles,) if isinstance(styles, str) else tuple(styles)
 
     def style(c: Clip) -> str | None:
         s = c.meta.get("style")
