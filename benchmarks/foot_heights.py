@@ -37,7 +37,7 @@ frame, as ``motionflows play --foot-lock`` does), with ``moved_cm``: how far the
 the joints (median, 99th percentile and maximum over the frames of each frame's largest
 move).
 
-Used for docs/readme/moglow_quality.md (stance heights, strides)::
+Used for docs/readme/moglow_quality.md (stance heights, strides, foot lock)::
 
     python benchmarks/foot_heights.py pretrained:moglow-bandai pretrained:vae_lstm-bandai
 """
