@@ -207,7 +207,8 @@ def cmd_sample(args) -> int:
         from motionflows import render
 
         for i in range(args.num):
-            title = f"{module.NAME} {name} #{i}" + ("" if truth is None else " | ground truth")
+            title = f"{module.NAME} {name} #{i}" + (", foot lock" if args.foot_lock else "")
+            title += "" if truth is None else " | ground truth"
             gif = render.animate(
                 pose[i],
                 control,
