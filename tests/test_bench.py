@@ -37,6 +37,9 @@ def _available() -> list[str]:
 
 MODELS = _available()
 
+# the smoke bench checks reports and reuse, never speed: compile it cheaply (conftest.py)
+pytestmark = pytest.mark.usefixtures("fast_compilation")
+
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory):
