@@ -20,9 +20,6 @@ from motionflows.distributions import Normal, Transformed
 from motionflows.models.glow import Glow
 from motionflows.nets.conv import ConvNet, TimeConv
 
-# values and tiny trainings, never speed: compile cheaply (conftest.py)
-pytestmark = pytest.mark.usefixtures("fast_compilation")
-
 
 def _perturb(model, key, scale=0.1):
     """Add noise to every trainable parameter (zero-init heads included): non-trivial maps.
