@@ -16,9 +16,6 @@ from motionflows.inference import inference_copy, streaming_model
 from motionflows.models.moglow import MoGlow
 from tests.params import perturbed
 
-# values, never speed: compile cheaply (conftest.py)
-pytestmark = pytest.mark.usefixtures("fast_compilation")
-
 D, C, TAU, K, H = 6, 2, 3, 3, 8
 
 

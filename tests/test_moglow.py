@@ -14,9 +14,6 @@ from motionflows.bijectors import initialize_from_data
 from motionflows.models.moglow import MoGlow, build_conditions
 from tests.params import perturbed
 
-# values, never speed: compile cheaply (conftest.py)
-pytestmark = pytest.mark.usefixtures("fast_compilation")
-
 D, C, TAU, K, H = 6, 2, 3, 2, 8
 
 

@@ -25,9 +25,6 @@ from motionflows.models.vae_lstm import (
 from motionflows.nets.vae import kernel_for_fps, random_unpool2
 from tests.params import perturbed
 
-# values and tiny trainings, never speed: compile cheaply (conftest.py)
-pytestmark = pytest.mark.usefixtures("fast_compilation")
-
 TINY = dict(latent_dim=8, control_hidden=8, control_features=8, pose_hidden=8,
             pose_features=16, decoder_hidden=8)  # fmt: skip
 
