@@ -53,7 +53,7 @@ import sys
 
 import numpy as np
 
-from motionflows.data.features import clip_from_bvh
+from motionflows.data.features import clip_from_bvh, integrate_root
 from motionflows.data.names import FOOT_JOINTS
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
@@ -68,7 +68,7 @@ from motionflows.evaluation.motion import (
     stride_period,
     to_global,
 )
-from motionflows.foot_lock import StreamingFootLock, _to_root_frame, _yaw, foot_lock
+from motionflows.foot_lock import StreamingFootLock, _to_root_frame, foot_lock
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -121,7 +121,7 @@ def streamed_lock(pose: np.ndarray, control: np.ndarray, *, fps: float) -> np.nd
     """Poses (N, T, 63) locked frame by frame by a fresh StreamingFootLock per window."""
     out = np.empty_like(pose)
     for i, (p, c) in enumerate(zip(pose, control, strict=True)):
-        world, yaw = _joints(to_global(p, c)), _yaw(c)
+        world, yaw = _joints(to_global(p, c)), integrate_root(c)[1]
         lock = StreamingFootLock(fps=fps)
         held = np.stack([lock.step(w, a) for w, a in zip(world, yaw, strict=True)])
         out[i] = p + _to_root_frame(held - world, yaw).reshape(p.shape)

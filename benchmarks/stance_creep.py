@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from motionflows.data.features import clip_from_bvh
+from motionflows.data.features import clip_from_bvh, integrate_root
 from motionflows.data.names import FOOT_JOINTS, NUM_JOINTS
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
@@ -74,7 +74,7 @@ def stance_steps(pose, drawn, control, tau: int, *, fps: float) -> dict:
     contact = foot_contacts(pose)
     stand = (contact[:, tau - 1 : -1] & contact[:, tau:]).transpose(0, 2, 1)  # (B, 2, T')
     step = (new[:, tau:] - real[:, tau - 1 : -1]).transpose(0, 2, 1, 3)  # (B, 2, T', 3)
-    yaw = np.concatenate([np.zeros_like(control[:, :1, 2]), np.cumsum(control[:, :-1, 2], 1)], 1)
+    yaw = integrate_root(control)[1]
     facing = np.stack([np.sin(yaw), np.cos(yaw)], -1)[:, None, tau:]  # (B, 1, T', 2)
     speed = np.hypot(step[..., 0], step[..., 2]) * fps
     forward = np.sum(step[..., [0, 2]] * facing, -1) * fps

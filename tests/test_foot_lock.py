@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from motionflows.data.features import integrate_root
 from motionflows.data.pipeline import make_windows
 from motionflows.data.synthetic import straight_walk
 from motionflows.evaluation.motion import bone_lengths, foot_contacts, foot_sliding, to_global
@@ -15,7 +16,6 @@ from motionflows.foot_lock import (
     _stance_shift,
     _to_root_frame,
     _two_bone_ik,
-    _yaw,
     foot_lock,
 )
 
@@ -93,7 +93,7 @@ def test_the_streaming_lock_sees_only_the_past_and_holds_feet_within_its_reach(c
     pose, control = creeping
     locked, moved = [], 0.0
     for p, c in zip(pose, control, strict=True):
-        world, yaw = to_global(p, c).reshape(-1, 21, 3), _yaw(c)
+        world, yaw = to_global(p, c).reshape(-1, 21, 3), integrate_root(c)[1]
         lock = StreamingFootLock(fps=FPS, max_shift=0.05)
         held = np.stack([lock.step(w, a) for w, a in zip(world, yaw, strict=True)])
         moved = max(moved, np.abs(held[:, [3, 4, 7, 8], :] - world[:, [3, 4, 7, 8], :]).max())

@@ -50,13 +50,14 @@ from typing import Any
 
 import numpy as np
 
+from motionflows.data.features import integrate_root
 from motionflows.data.names import NUM_JOINTS
 from motionflows.evaluation.motion import (
     FLOOR_CONTACT_M,
-    FLOOR_MAX_OFFSET_M,
-    FLOOR_PERCENTILE,
     _check_control,
     _check_pose,
+    _foot_heights,
+    contact_floor,
     foot_contacts,
     to_global,
 )
@@ -98,7 +99,7 @@ def foot_lock(
     shape = local.shape
     world = to_global(local, ctrl).reshape(shape[:-1] + (NUM_JOINTS, 3))
     contact = foot_contacts(local, rule=rule, contact_height=contact_height)  # (..., T, 2)
-    yaw = _yaw(ctrl)
+    yaw = integrate_root(ctrl)[1]
     new = world.copy()
     for side, leg in enumerate(LEGS):
         centre = 0.5 * (world[..., leg[2], :] + world[..., leg[3], :])
@@ -131,11 +132,11 @@ class StreamingFootLock:
         if bad:
             raise ValueError(f"StreamingFootLock: {bad} must be finite numbers > 0")
         self.blend, self.max_shift = int(blend), float(max_shift)
-        self._window = max(1, int(round(2 * floor_seconds * fps)))  # heights of both feet
+        self._window = max(1, int(round(floor_seconds * fps)))  # frames of feet heights
         self.reset()
 
     def reset(self) -> None:
-        self._heights: deque = deque(maxlen=self._window)
+        self._heights: deque = deque(maxlen=self._window)  # (2,) per frame
         self._anchor: list[np.ndarray | None] = [None, None]
         self._last = np.zeros((2, 2))  # the shift of each foot's latest stance frame
         self._since = [self.blend + 1] * 2  # frames since that stance frame
@@ -147,13 +148,9 @@ class StreamingFootLock:
                 f"StreamingFootLock.step: joints must be finite world positions "
                 f"({NUM_JOINTS}, 3) in metres, got shape {world.shape}"
             )
-        heights = [min(world[leg[2], 1], world[leg[3], 1]) for leg in LEGS]
-        self._heights.extend(heights)
-        floor = np.clip(
-            np.percentile(np.asarray(self._heights), FLOOR_PERCENTILE),
-            -FLOOR_MAX_OFFSET_M,
-            FLOOR_MAX_OFFSET_M,
-        )
+        heights = _foot_heights(world)  # (2,): left, right
+        self._heights.append(heights)
+        floor = contact_floor(np.asarray(self._heights))  # the rule's floor over the window
         new = world.copy()
         for side, leg in enumerate(LEGS):
             centre = 0.5 * (world[leg[2], [0, 2]] + world[leg[3], [0, 2]])
@@ -188,12 +185,6 @@ def _shift_leg(new: np.ndarray, world: np.ndarray, leg, shift: np.ndarray, yaw) 
     new[..., knee, :] = knee_at
     new[..., ankle, :] = ankle_at
     new[..., toe, :] = world[..., toe, :] + (ankle_at - world[..., ankle, :])
-
-
-def _yaw(control: np.ndarray) -> np.ndarray:
-    """(..., T): the root's world heading, as :func:`~motionflows.data.features.integrate_root`."""
-    turn = control[..., 2]
-    return np.concatenate([np.zeros_like(turn[..., :1]), np.cumsum(turn[..., :-1], -1)], -1)
 
 
 def _to_root_frame(world_delta: np.ndarray, yaw: np.ndarray) -> np.ndarray:

@@ -185,7 +185,8 @@ class Character:
             frame["pose_drawn"] = drawn
         with self._lock:
             self._poses.append(pose)
-            self._drawn.append(drawn)
+            if self.foot_lock is not None:
+                self._drawn.append(drawn)
             self._controls.append(control)
         self.position, self.yaw = advance(self.position, self.yaw, control)
         self.t += 1
