@@ -28,7 +28,7 @@ from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
 from motionflows.inference import inference_copy
-from motionflows.models.moglow import MoGlow
+from motionflows.models.moglow import OWN_HISTORY_TARGETS, MoGlow
 from motionflows.models.validation import check_sample_args
 
 NAME = "moglow"
@@ -58,6 +58,10 @@ class Config:
     residual_world: bool = False  # residual taken in the world: planted feet change by 0
     world_joints: str = "all"  # with residual_world: "all" joints or the "feet" only
     absolute_foot_heights: bool = False  # with residual: the feet's heights flowed, not changed
+    own_history: float = 0.0  # P(a history frame is the model's own draw) in training
+    own_history_passes: int = 1  # draws from drawn histories: up to this many frames deep
+    own_history_temperature: float = 0.8  # temperature of those draws
+    own_history_target: str = "pose"  # after a drawn history: the true "pose" or "change"
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -83,6 +87,19 @@ class Config:
             )
         if not self.history_noise >= 0.0:
             raise ValueError(f"history_noise must be >= 0, got {self.history_noise}")
+        if not 0.0 <= self.own_history <= 1.0:
+            raise ValueError(f"own_history must be in [0, 1], got {self.own_history}")
+        if self.own_history_passes < 1:
+            raise ValueError(f"own_history_passes must be >= 1, got {self.own_history_passes}")
+        if not self.own_history_temperature >= 0.0:
+            raise ValueError(
+                f"own_history_temperature must be >= 0, got {self.own_history_temperature}"
+            )
+        if self.own_history_target not in OWN_HISTORY_TARGETS:
+            raise ValueError(
+                f"own_history_target must be one of {', '.join(OWN_HISTORY_TARGETS)}, "
+                f"got {self.own_history_target!r}"
+            )
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
                 f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}"
@@ -206,8 +223,9 @@ SCOPES: dict[str, Scope] = {
         skip="tau",
     ),
     "official_dropout": Scope(
-        "as 'official' but with the training-time history dropout (and history noise, if "
-        "set; random, key-dependent), comparable with the official validation curves",
+        "as 'official' but with the training-time history dropout (and own-history draws "
+        "and history noise, if set; random, key-dependent), comparable with the official "
+        "validation curves",
         skip="tau",
     ),
 }
@@ -233,6 +251,10 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         residual_world=config.residual_world,
         world_joints=config.world_joints,
         absolute_foot_heights=config.absolute_foot_heights,
+        own_history=config.own_history,
+        own_history_passes=config.own_history_passes,
+        own_history_temperature=config.own_history_temperature,
+        own_history_target=config.own_history_target,
         rngs=key,
     )
 
@@ -255,7 +277,7 @@ def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None)
 
 def loss(model: MoGlow, batch: dict, key: jax.Array):
     """Mean NLL per target frame (nats, standardised) with history dropout (and
-    ``history_noise``) from ``key``."""
+    ``own_history``, ``history_noise``) from ``key``."""
     pose = batch["pose"]
     ll = model.log_prob(pose, batch["control"], key=key)
     nll = -jnp.mean(ll) / model.num_targets(pose.shape[-2])

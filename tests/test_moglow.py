@@ -195,6 +195,74 @@ def test_history_noise_corrupts_the_training_history_only(residual):
         _model(history_noise=-0.1)
 
 
+@pytest.mark.parametrize("residual", [False, True])
+def test_own_history_draws_from_the_real_history_and_scores_the_true_targets(residual):
+    """Parallel scheduled sampling: at temperature 0 every drawn frame is the model's mode
+    given the real history (inverting it with the real conditions gives z = 0); training
+    scores the true targets with the drawn frames in the later histories (and, residual,
+    as the previous pose); clean scoring is unaffected."""
+    from motionflows.models.moglow import previous_frames
+
+    kw = dict(residual=residual, own_history_temperature=0.0)
+    clean, own = _model(residual=residual), _model(**kw, own_history=1.0)
+    pose, control = _data(t=TAU + 4)
+    np.testing.assert_allclose(own.log_prob(pose, control), clean.log_prob(pose, control))
+    key = jax.random.key(3)
+    for scope in ("official", "window"):
+        drawn = own._own_history(pose, control, scope, jax.random.fold_in(key, 2), 1.0)
+        offset = TAU if scope == "official" else 0
+        np.testing.assert_array_equal(drawn[:, :offset], pose[:, :offset])  # seeds stay real
+        _, cond = build_conditions(pose, control, TAU, scope=scope)
+        u = drawn[:, offset:]
+        if residual:
+            u = u - previous_frames(pose, TAU, scope)
+        z, _ = own.flow.inverse_and_log_det(u, context=cond)
+        np.testing.assert_allclose(z, 0.0, atol=1e-4)
+        assert np.abs(np.asarray(drawn - pose)[:, offset:]).min() > 1e-3  # really replaced
+    # the training score: true targets, histories (and the residual's base) from the draws
+    drawn = own._own_history(pose, control, "official", jax.random.fold_in(key, 2), 1.0)
+    targets, cond = build_conditions(pose, control, TAU, history_pose=drawn)
+    if residual:
+        targets = targets - previous_frames(drawn, TAU)
+    z, log_det = own.flow.inverse_and_log_det(targets, context=cond)
+    expected = jnp.sum(own.base_log_prob(z), axis=-1) + log_det
+    np.testing.assert_allclose(own.log_prob(pose, control, key=key), expected, rtol=1e-5)
+    # "change": the true change continued from the drawn previous frame,
+    # x_t + x^_{t-1} - x_{t-1} (residual: u_t = x_t - x_{t-1}, the real change)
+    carry_on = _model(**kw, own_history=1.0, own_history_target="change")
+    targets, cond = build_conditions(pose, control, TAU, history_pose=drawn)
+    if residual:
+        targets = targets - previous_frames(pose, TAU)
+    else:
+        targets = targets + previous_frames(drawn - pose, TAU)
+    z, log_det = carry_on.flow.inverse_and_log_det(targets, context=cond)
+    expected = jnp.sum(carry_on.base_log_prob(z), axis=-1) + log_det
+    np.testing.assert_allclose(carry_on.log_prob(pose, control, key=key), expected, rtol=1e-5)
+
+
+def test_own_history_mixes_frames_and_passes_draw_from_draws():
+    pose, control = _data(b=8, t=40)
+    model = _model(residual=True, own_history_temperature=0.0, own_history_passes=2)
+    key = jax.random.key(4)
+    half = model._own_history(pose, control, "official", key, 0.5)
+    replaced = np.abs(np.asarray(half - pose)).max(axis=-1) > 0  # (B, T) frames swapped
+    assert not replaced[:, :TAU].any()
+    assert 0.35 < replaced[:, TAU:].mean() < 0.65  # each frame with probability 0.5
+    # two passes: the second draws every frame from the first pass's drawn histories
+    one = _model(residual=True, own_history_temperature=0.0)
+    first = one._own_history(pose, control, "official", key, 1.0)
+    second = model._own_history(pose, control, "official", key, 1.0)
+    assert not np.allclose(first, second, atol=1e-4)
+    _, cond = build_conditions(pose, control, TAU, history_pose=first)
+    u = second[:, TAU:] - first[:, TAU - 1 : -1]
+    z, _ = model.flow.inverse_and_log_det(u, context=cond)
+    np.testing.assert_allclose(z, 0.0, atol=1e-4)
+    for bad in (dict(own_history=1.5), dict(own_history_passes=0),
+                dict(own_history_temperature=-1.0), dict(own_history_target="x")):  # fmt: skip
+        with pytest.raises(ValueError, match="own_history"):
+            _model(**bad)
+
+
 def test_log_prob_dropout_uses_key():
     model = _model(dropout=0.5)
     pose, control = _data()

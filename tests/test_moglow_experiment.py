@@ -9,10 +9,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import nnx
 
 from experiments import moglow as exp
-from motionflows.config import DataConfig, from_dict, to_dict
+from motionflows.config import DataConfig, apply_overrides, from_dict, to_dict
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from tests.params import perturbed
 
 
 def test_presets_and_config_round_trip():
@@ -29,6 +31,34 @@ def test_presets_and_config_round_trip():
         exp.Config(conditioner="rnn")
     assert exp.SCOPES["official"].scored_frames(80, paper) == 70
     assert exp.SCOPES["window"].scored_frames(80, paper) == 80
+
+
+def test_own_history_reaches_the_model_and_the_loss():
+    """``--set own_history=...`` builds a MoGlow that trains on its own draws: the loss
+    (with a key) differs from the plain model's with the same parameters and is finite,
+    its gradient too; bad values are refused by the config."""
+    base = dataclasses.replace(exp.PRESETS["smoke"], data=DataConfig(window=8), tau=3)
+    config = apply_overrides(
+        base, ["own_history=1", "own_history_target=change", "own_history_passes=2"]
+    )
+    model = exp.build(config, key=jax.random.key(0))
+    assert (model.own_history, model.own_history_target, model.own_history_passes) == (
+        1.0, "change", 2)  # fmt: skip
+    kp, kc = jax.random.split(jax.random.key(1))
+    batch = {"pose": jax.random.normal(kp, (4, 8, POSE_DIM)),
+             "control": jax.random.normal(kc, (4, 8, CONTROL_DIM))}  # fmt: skip
+    model = exp.initialize(model, batch, key=jax.random.key(0))
+    model = perturbed(model, jax.random.key(5))  # non-zero coupling heads: draws matter
+    plain = exp.build(base, key=jax.random.key(0))
+    nnx.update(plain, nnx.state(model, nnx.Param))
+    own_loss, _ = exp.loss(model, batch, jax.random.key(2))
+    plain_loss, _ = exp.loss(plain, batch, jax.random.key(2))
+    assert np.isfinite(float(own_loss)) and not np.isclose(float(own_loss), float(plain_loss))
+    grads = nnx.grad(lambda m: exp.loss(m, batch, jax.random.key(2))[0])(model)
+    assert all(np.isfinite(g).all() for g in jax.tree.leaves(grads))
+    for bad in ("own_history=2", "own_history_passes=0", "own_history_target=pose2"):
+        with pytest.raises(ValueError, match="own_history"):
+            apply_overrides(base, [bad])
 
 
 def test_protocol_functions():
