@@ -279,7 +279,7 @@ class MoGlow(nnx.Module):
         from a drawn history). The model learns p(x_t | a history with its own errors), the
         situation of free-running sampling, whose correlated errors (a creeping stance
         foot) Gaussian ``history_noise`` does not imitate. Costs one sequence pass (no
-        backward) per training step and pass (the quick size: 1.6x the step time). The
+        backward) per training step and pass (the quick size: 1.7-2x the step time). The
         coupling LSTMs of the draw pass run over the drawn frames, as in sampling, with
         the real histories in cond_t. Applied before ``history_noise`` and dropout.
       own_history_passes: n >= 1 above.
