@@ -58,10 +58,10 @@ from motionflows.data.names import FOOT_JOINTS
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
 from motionflows.evaluation.motion import (
-    _foot_heights,
     _joints,
     contact_floor,
     contact_rate,
+    foot_heights,
     foot_sliding,
     frechet_pose_distance,
     jerk,
@@ -82,7 +82,7 @@ FPS, WINDOW, HOP = 20.0, 80, 40
 
 def stance_heights(pose: np.ndarray, *, fps: float) -> dict:
     """The block and floor statistics above for poses (N, T, 63) in metres."""
-    heights = _foot_heights(_joints(np.asarray(pose, np.float64)))  # (N, T, 2)
+    heights = foot_heights(_joints(np.asarray(pose, np.float64)))  # (N, T, 2)
     n, t = heights.shape[:2]
     block = round(fps)
     lowest = heights[:, : t - t % block].min(-1).reshape(n, -1, block).min(-1) * 100.0

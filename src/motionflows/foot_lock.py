@@ -56,9 +56,9 @@ from motionflows.evaluation.motion import (
     FLOOR_CONTACT_M,
     _check_control,
     _check_pose,
-    _foot_heights,
     contact_floor,
     foot_contacts,
+    foot_heights,
     to_global,
 )
 
@@ -148,7 +148,7 @@ class StreamingFootLock:
                 f"StreamingFootLock.step: joints must be finite world positions "
                 f"({NUM_JOINTS}, 3) in metres, got shape {world.shape}"
             )
-        heights = _foot_heights(world)  # (2,): left, right
+        heights = foot_heights(world)  # (2,): left, right
         self._heights.append(heights)
         floor = contact_floor(np.asarray(self._heights))  # the rule's floor over the window
         new = world.copy()

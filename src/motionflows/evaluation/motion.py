@@ -184,21 +184,24 @@ SKATE_SPEED_M_S = 0.5
 the threshold of the foot-skating ratio of Karunratanakul et al. 2023) is a skate."""
 
 
-def _foot_heights(joints: np.ndarray) -> np.ndarray:
-    """(..., T, 2): the height of each foot's lowest joint (ankle or toe), left then right."""
-    return np.stack([np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
+def foot_heights(joints: Any) -> Any:
+    """(..., T, 2): the height of each foot's lowest joint (ankle or toe), left then right,
+    of joints (..., T, 21, 3) (numpy or jax, traced too)."""
+    xp = _xp(joints)
+    return xp.stack([xp.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
 
 
 _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])
 
 
-def contact_floor(heights: np.ndarray) -> np.ndarray:
+def contact_floor(heights: Any) -> Any:
     """The ``"floor"`` rule's floor (...,) of feet heights (..., T, 2) in metres: the
     ``FLOOR_PERCENTILE`` of both feet's heights over the frames, clipped to
-    +-``FLOOR_MAX_OFFSET_M``."""
+    +-``FLOOR_MAX_OFFSET_M`` (numpy or jax, traced too)."""
+    xp = _xp(heights)
     flat = heights.reshape(heights.shape[:-2] + (-1,))
-    return np.clip(
-        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
+    return xp.clip(
+        xp.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
     )
 
 
@@ -222,7 +225,7 @@ def foot_contacts(
     Speed is never part of the test, so a foot dragged along the ground counts as sliding.
     """
     j = _joints(pose)
-    heights = _foot_heights(j)
+    heights = foot_heights(j)
     if rule == "floor":
         h = FLOOR_CONTACT_M if contact_height is None else float(contact_height)
         return heights < contact_floor(heights)[..., None, None] + h
