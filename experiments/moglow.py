@@ -29,7 +29,6 @@ from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
 from motionflows.inference import inference_copy
 from motionflows.models.moglow import OWN_HISTORY_TARGETS, MoGlow
-from motionflows.models.moglow_rollout import rollout_sliding
 from motionflows.models.validation import check_sample_args
 
 NAME = "moglow"
@@ -63,9 +62,6 @@ class Config:
     own_history_passes: int = 1  # draws from drawn histories: up to this many frames deep
     own_history_temperature: float = 0.8  # temperature of those draws
     own_history_target: str = "pose"  # after a drawn history: the true "pose" or "change"
-    rollout_sliding: float = 0.0  # weight of the own rollouts' foot sliding (cm/frame) in the loss
-    rollout_frames: int = 10  # frames per rollout (from each window's first tau poses)
-    rollout_temperature: float = 0.8  # temperature of the rollouts
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -103,17 +99,6 @@ class Config:
             raise ValueError(
                 f"own_history_target must be one of {', '.join(OWN_HISTORY_TARGETS)}, "
                 f"got {self.own_history_target!r}"
-            )
-        if not self.rollout_sliding >= 0.0:
-            raise ValueError(f"rollout_sliding must be >= 0, got {self.rollout_sliding}")
-        if self.rollout_frames < 1:
-            raise ValueError(f"rollout_frames must be >= 1, got {self.rollout_frames}")
-        if not self.rollout_temperature >= 0.0:
-            raise ValueError(f"rollout_temperature must be >= 0, got {self.rollout_temperature}")
-        if self.rollout_sliding > 0 and self.data.window < self.tau + self.rollout_frames:
-            raise ValueError(
-                f"rollout_sliding needs data.window >= tau + rollout_frames ({self.tau} + "
-                f"{self.rollout_frames}), got window={self.data.window}"
             )
         if self.compute_dtype not in ("float32", "bfloat16"):
             raise ValueError(
@@ -270,24 +255,19 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         own_history_passes=config.own_history_passes,
         own_history_temperature=config.own_history_temperature,
         own_history_target=config.own_history_target,
-        rollout_sliding=config.rollout_sliding,
-        rollout_frames=config.rollout_frames,
-        rollout_temperature=config.rollout_temperature,
         rngs=key,
     )
 
 
 def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None) -> MoGlow:
     """Data-dependent initialisation on one batch (pure: returns a new model): with
-    ``residual_world`` or ``rollout_sliding`` the standardiser's units first
-    (``MoGlow.with_units``; the training loop passes the run's ``standardizer``), then
-    ActNorm."""
+    ``residual_world`` the standardiser's units first (``MoGlow.with_units``; the training
+    loop passes the run's ``standardizer``), then ActNorm."""
     del key
-    if model.residual_world or model.rollout_sliding > 0:
+    if model.residual_world:
         if standardizer is None:
             raise ValueError(
-                "a residual_world or rollout_sliding MoGlow needs the run's standardizer to "
-                "initialise "
+                "a residual_world MoGlow needs the run's standardizer to initialise "
                 "(initialize(model, batch, key=..., standardizer=dataset.standardizer))"
             )
         s = standardizer
@@ -297,18 +277,11 @@ def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None)
 
 def loss(model: MoGlow, batch: dict, key: jax.Array):
     """Mean NLL per target frame (nats, standardised) with history dropout (and
-    ``own_history``, ``history_noise``) from ``key``; with ``rollout_sliding`` = w > 0 plus
-    w x the foot sliding (cm per frame) of the model's own short rollouts
-    (:func:`motionflows.models.moglow_rollout.rollout_sliding`)."""
-    pose, control = batch["pose"], batch["control"]
-    ll = model.log_prob(pose, control, key=key)
+    ``own_history``, ``history_noise``) from ``key``."""
+    pose = batch["pose"]
+    ll = model.log_prob(pose, batch["control"], key=key)
     nll = -jnp.mean(ll) / model.num_targets(pose.shape[-2])
-    metrics = {"nll_per_frame": nll, "bits_per_frame": nll / _LN2}
-    if model.rollout_sliding <= 0:
-        return nll, metrics
-    sliding = rollout_sliding(model, pose, control, jax.random.fold_in(key, 3))
-    metrics["rollout_sliding_cm"] = sliding
-    return nll + model.rollout_sliding * sliding, metrics
+    return nll, {"nll_per_frame": nll, "bits_per_frame": nll / _LN2}
 
 
 def evaluate(model: MoGlow, batch: dict, key: jax.Array) -> dict[str, jax.Array]:

@@ -14,7 +14,6 @@ from flax import nnx
 from experiments import moglow as exp
 from motionflows.config import DataConfig, apply_overrides, from_dict, to_dict
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
-from motionflows.optim import init_guard, make_optimizer, make_train_step
 from tests.params import perturbed
 
 
@@ -60,33 +59,6 @@ def test_own_history_reaches_the_model_and_the_loss():
     for bad in ("own_history=2", "own_history_passes=0", "own_history_target=pose2"):
         with pytest.raises(ValueError, match="own_history"):
             apply_overrides(base, [bad])
-
-
-def test_rollout_sliding_adds_the_rollouts_sliding_and_trains():
-    """``--set rollout_sliding=w`` adds w x the rollouts' foot sliding (cm/frame) to the
-    NLL in a whole donated training step on the smoke data, with a finite update (the step
-    hung in XLA:CPU before ``InvertibleLinear.initial_carry``'s optimization barrier);
-    bad values and windows too short for the rollout are refused."""
-    base = exp.PRESETS["smoke"]
-    config = apply_overrides(base, ["rollout_frames=5", "rollout_sliding=2", "residual=true"])
-    dataset = config.data.load()
-    batch = dataset.batch("train", 8, seed=0, index=0)
-    model = exp.build(config, key=jax.random.key(0))
-    model = exp.initialize(model, batch, key=None, standardizer=dataset.standardizer)
-    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
-    optimizer = make_optimizer(config.train)
-    step = make_train_step(exp, graphdef, optimizer)
-    out = step(params, rest, optimizer.init(params), init_guard(), batch, jax.random.key(1))[3]
-    out = {k: float(v) for k, v in jax.device_get(out).items()}
-    assert out["finite"] and np.isfinite(out["grad_norm"]) and out["rollout_sliding_cm"] > 0
-    expected = out["nll_per_frame"] + 2.0 * out["rollout_sliding_cm"]
-    np.testing.assert_allclose(out["loss"], expected, rtol=1e-6)
-    for bad in ("rollout_sliding=-1", "rollout_frames=0", "rollout_temperature=-1"):
-        with pytest.raises(ValueError, match="rollout"):
-            apply_overrides(base, [bad])
-    short = dataclasses.replace(base, data=DataConfig(window=12), tau=3)
-    with pytest.raises(ValueError, match="rollout_frames"):
-        apply_overrides(short, ["rollout_sliding=1"])
 
 
 def test_protocol_functions():

@@ -91,14 +91,9 @@ class InvertibleLinear(Bijector):
         return jnp.broadcast_to(x.shape[-2] * jnp.sum(self.log_s[...]), x.shape[:-2])
 
     def initial_carry(self, batch_shape=()):
-        """``(W, W^-1)``, each (D, D): formed once, read by every frame step.
-
-        Behind an ``optimization_barrier``: differentiated inside a jitted step that donates
-        the parameters (``motionflows.optim.make_train_step``; MoGlow's ``rollout_sliding``
-        samples in training), XLA:CPU (jaxlib 0.10.2) otherwise hangs on the first step.
-        Values and gradients are unchanged."""
+        """``(W, W^-1)``, each (D, D): formed once, read by every frame step."""
         del batch_shape
-        return jax.lax.optimization_barrier((self.weight(), self.inverse_weight()))
+        return self.weight(), self.inverse_weight()
 
     def _frame_step(self, u_t: Array, carry, *, forward: bool):
         check_frame(u_t, "InvertibleLinear")

@@ -291,14 +291,6 @@ class MoGlow(nnx.Module):
         planted foot stays where it was drawn; the model learns to carry on from its own
         past, not to correct it). The shift is a function of the history, so either is an
         exact density of its targets.
-      rollout_sliding: weight w of a second training term (our option, 0 = off; the
-        experiment's loss adds it, :meth:`log_prob` does not): the foot sliding of the
-        model's own ``rollout_frames``-frame rollouts from the start of each training window,
-        in cm per frame (:func:`motionflows.models.moglow_rollout.rollout_sliding`), so
-        the objective is NLL per frame + w * sliding. Not a likelihood: it trades density
-        for planted feet. Needs D = 63, C = 3 and :meth:`with_units`.
-      rollout_frames: k >= 1 frames per rollout (windows need tau + k frames).
-      rollout_temperature: T >= 0 of the rollouts' latents.
       rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
     """
 
@@ -327,9 +319,6 @@ class MoGlow(nnx.Module):
         own_history_passes: int = 1,
         own_history_temperature: float = 0.8,
         own_history_target: str = "pose",
-        rollout_sliding: float = 0.0,
-        rollout_frames: int = 10,
-        rollout_temperature: float = 0.8,
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -353,16 +342,6 @@ class MoGlow(nnx.Module):
             raise ValueError(
                 f"own_history_target must be one of {', '.join(OWN_HISTORY_TARGETS)}, "
                 f"got {own_history_target!r}"
-            )
-        if not float(rollout_sliding) >= 0.0:
-            raise ValueError(f"rollout_sliding must be >= 0, got {rollout_sliding}")
-        if int(rollout_frames) < 1:
-            raise ValueError(f"rollout_frames must be >= 1, got {rollout_frames}")
-        check_temperature(rollout_temperature, "MoGlow(rollout_temperature=...)")
-        if rollout_sliding and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
-            raise ValueError(
-                f"rollout_sliding needs the motion features (pose_dim={POSE_DIM} joint "
-                f"positions, control_dim={CONTROL_DIM} root moves), got {pose_dim}, {control_dim}"
             )
         if int(tau) < 1 or int(K) < 1 or int(pose_dim) < 2 or int(control_dim) < 0:
             raise ValueError(
@@ -419,10 +398,7 @@ class MoGlow(nnx.Module):
         self.own_history_passes = int(own_history_passes)
         self.own_history_temperature = float(own_history_temperature)
         self.own_history_target = own_history_target
-        self.rollout_sliding = float(rollout_sliding)
-        self.rollout_frames = int(rollout_frames)
-        self.rollout_temperature = float(rollout_temperature)
-        if self.residual_world or self.rollout_sliding > 0:  # [pose mean, std, control mean, std]
+        if self.residual_world:  # [pose mean, pose std, control mean, control std]
             self.units = Fixed(
                 jnp.concatenate(
                     [jnp.zeros(pose_dim), jnp.ones(pose_dim), jnp.zeros(control_dim),
@@ -446,13 +422,10 @@ class MoGlow(nnx.Module):
     # -- the residual's previous pose
 
     def with_units(self, pose_mean, pose_std, control_mean, control_std) -> MoGlow:
-        """A copy whose ``residual_world`` carry and ``rollout_sliding`` work in these units:
-        the standardiser's per-channel means and stds of poses (D,) (metres) and controls
-        (C,). Pure."""
-        if not hasattr(self, "units"):
-            raise ValueError(
-                "MoGlow.with_units is only for residual_world or rollout_sliding models"
-            )
+        """A copy whose ``residual_world`` carry works in these units: the standardiser's
+        per-channel means and stds of poses (D,) (metres) and controls (C,). Pure."""
+        if not self.residual_world:
+            raise ValueError("MoGlow.with_units is only for residual_world models")
         parts = [np.asarray(a, np.float32).reshape(-1) for a in
                  (pose_mean, pose_std, control_mean, control_std)]  # fmt: skip
         sizes = [self.pose_dim, self.pose_dim, self.control_dim, self.control_dim]
@@ -464,30 +437,17 @@ class MoGlow(nnx.Module):
         model.units[...] = jnp.asarray(np.concatenate(parts))
         return model
 
-    def _units(self) -> tuple[Array, Array, Array, Array]:
-        """(pose mean, pose std, control mean, control std) of :meth:`with_units`."""
-        d, c = self.pose_dim, self.control_dim
-        units = jax.lax.stop_gradient(self.units[...])
-        return units[:d], units[d : 2 * d], units[2 * d : 2 * d + c], units[2 * d + c :]
-
-    def in_metres(self, pose: Array, control: Array) -> tuple[Array, Array]:
-        """Standardised pose (..., D) and control (..., C) in data units (metres; m/frame
-        and rad/frame) by :meth:`with_units` (``residual_world`` and ``rollout_sliding``
-        models only)."""
-        if not hasattr(self, "units"):
-            raise ValueError("MoGlow.in_metres needs a residual_world or rollout_sliding model")
-        p_mean, p_std, c_mean, c_std = self._units()
-        return p_mean + p_std * pose, c_mean + c_std * control
-
     def _carry_previous(self, previous: Array, cond: Array) -> Array:
         """``residual_world``: x_{t-1} (..., D) carried into frame t's root frame by c_{t-1},
         read from cond (..., cond_dim) (the controls there are never dropped); standardised
         in and out."""
         d, c, tau = self.pose_dim, self.control_dim, self.tau
-        p_mean, p_std = self._units()[:2]
+        units = jax.lax.stop_gradient(self.units[...])
+        p_mean, p_std = units[:d], units[d : 2 * d]
+        c_mean, c_std = units[2 * d : 2 * d + c], units[2 * d + c :]
         start = tau * d + (tau - 1) * c  # c_{t-1}: the last history control
-        previous, control = self.in_metres(previous, cond[..., start : start + c])
-        moved = (carry_to_next_root(previous, control) - p_mean) / p_std
+        control = c_mean + c_std * cond[..., start : start + c]
+        moved = (carry_to_next_root(p_mean + p_std * previous, control) - p_mean) / p_std
         if self.world_joints == "feet":
             return jnp.where(_FEET_CHANNELS, moved, previous)
         return moved
