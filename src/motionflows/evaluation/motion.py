@@ -184,24 +184,22 @@ SKATE_SPEED_M_S = 0.5
 the threshold of the foot-skating ratio of Karunratanakul et al. 2023) is a skate."""
 
 
-def foot_heights(joints: Any) -> Any:
+def foot_heights(joints: np.ndarray) -> np.ndarray:
     """(..., T, 2): the height of each foot's lowest joint (ankle or toe), left then right,
-    of joints (..., T, 21, 3) (numpy or jax, traced too)."""
-    xp = _xp(joints)
-    return xp.stack([xp.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
+    of joints (..., T, 21, 3) in metres."""
+    return np.stack([np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
 
 
 _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])
 
 
-def contact_floor(heights: Any) -> Any:
+def contact_floor(heights: np.ndarray) -> np.ndarray:
     """The ``"floor"`` rule's floor (...,) of feet heights (..., T, 2) in metres: the
     ``FLOOR_PERCENTILE`` of both feet's heights over the frames, clipped to
-    +-``FLOOR_MAX_OFFSET_M`` (numpy or jax, traced too)."""
-    xp = _xp(heights)
+    +-``FLOOR_MAX_OFFSET_M``."""
     flat = heights.reshape(heights.shape[:-2] + (-1,))
-    return xp.clip(
-        xp.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
+    return np.clip(
+        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
     )
 
 
