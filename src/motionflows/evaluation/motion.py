@@ -185,8 +185,8 @@ the threshold of the foot-skating ratio of Karunratanakul et al. 2023) is a skat
 
 
 def foot_heights(joints: np.ndarray) -> np.ndarray:
-    """(..., T, 2): the height of each foot's lowest joint (ankle or toe), left then right,
-    of joints (..., T, 21, 3) in metres."""
+    """(..., 2): the height of each foot's lowest joint (ankle or toe), left then right, of
+    joints (..., 21, 3) in metres (sequences: (..., T, 21, 3) -> (..., T, 2))."""
     return np.stack([np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
 
 
