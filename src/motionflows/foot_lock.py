@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from motionflows.data.features import array_module, integrate_root
+from motionflows.data.features import integrate_root
 from motionflows.data.names import NUM_JOINTS
 from motionflows.evaluation.motion import (
     FLOOR_CONTACT_M,
@@ -228,24 +228,23 @@ def _stance_shift(centre: np.ndarray, contact: np.ndarray, blend: int) -> np.nda
 def _two_bone_ik(hip, knee, ankle, target, yaw):
     """(knee', ankle'), each (..., 3): the leg re-solved to put the ankle at ``target``
     (step 4 of the module docstring); thigh and shin keep their lengths."""
-    xp = array_module(hip)  # numpy here, jax.numpy in motionflows.stance
-    l1 = xp.linalg.norm(knee - hip, axis=-1)
-    l2 = xp.linalg.norm(ankle - knee, axis=-1)
+    l1 = np.linalg.norm(knee - hip, axis=-1)
+    l2 = np.linalg.norm(ankle - knee, axis=-1)
     reach = target - hip
     # out of reach: pull the target horizontally towards the hip, at its height
-    level = xp.sqrt(xp.maximum((1.0 - 1e-6) * (l1 + l2) ** 2 - reach[..., 1] ** 2, 0.0))
-    flat = xp.hypot(reach[..., 0], reach[..., 2])
-    pull = xp.minimum(1.0, level / xp.maximum(flat, 1e-12))
-    reach = reach * xp.stack([pull, xp.ones_like(pull), pull], axis=-1)
-    dist = xp.linalg.norm(reach, axis=-1)
-    facing = xp.stack([xp.sin(yaw), xp.zeros_like(yaw), xp.cos(yaw)], axis=-1)
-    u = xp.where(dist[..., None] > 1e-9, reach / xp.maximum(dist, 1e-9)[..., None], facing)
-    dist = xp.clip(dist, xp.abs(l1 - l2), l1 + l2)
+    level = np.sqrt(np.maximum((1.0 - 1e-6) * (l1 + l2) ** 2 - reach[..., 1] ** 2, 0.0))
+    flat = np.hypot(reach[..., 0], reach[..., 2])
+    pull = np.minimum(1.0, level / np.maximum(flat, 1e-12))
+    reach = reach * np.stack([pull, np.ones_like(pull), pull], axis=-1)
+    dist = np.linalg.norm(reach, axis=-1)
+    facing = np.stack([np.sin(yaw), np.zeros_like(yaw), np.cos(yaw)], axis=-1)
+    u = np.where(dist[..., None] > 1e-9, reach / np.maximum(dist, 1e-9)[..., None], facing)
+    dist = np.clip(dist, np.abs(l1 - l2), l1 + l2)
     bend = knee - hip
-    n = bend - xp.sum(bend * u, -1, keepdims=True) * u
-    alt = facing - xp.sum(facing * u, -1, keepdims=True) * u
-    n = xp.where(xp.linalg.norm(n, axis=-1, keepdims=True) > 1e-9, n, alt)
-    n = n / xp.maximum(xp.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-    x = (l1**2 - l2**2 + dist**2) / (2.0 * xp.maximum(dist, 1e-9))
-    h = xp.sqrt(xp.maximum(l1**2 - x**2, 0.0))
+    n = bend - np.sum(bend * u, -1, keepdims=True) * u
+    alt = facing - np.sum(facing * u, -1, keepdims=True) * u
+    n = np.where(np.linalg.norm(n, axis=-1, keepdims=True) > 1e-9, n, alt)
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    x = (l1**2 - l2**2 + dist**2) / (2.0 * np.maximum(dist, 1e-9))
+    h = np.sqrt(np.maximum(l1**2 - x**2, 0.0))
     return hip + x[..., None] * u + h[..., None] * n, hip + dist[..., None] * u

@@ -692,7 +692,7 @@ class MoGlow(nnx.Module):
             carry = (carry[0], poses[:, -1])
         return StreamState(carry=carry, poses=poses, controls=controls, t=jnp.zeros((), jnp.int32))
 
-    def _advance(self, state: StreamState, control_t: Array, z_t: Array, constraint=None):
+    def _advance(self, state: StreamState, control_t: Array, z_t: Array):
         batch = control_t.shape[0]
         cond_t = jnp.concatenate(
             [
@@ -703,11 +703,6 @@ class MoGlow(nnx.Module):
             axis=-1,
         )
         x_t, _, carry = self.frame_flow().forward_step(z_t, context_t=cond_t, carry=state.carry)
-        if constraint is not None:  # from the second frame: frame 0 has no drawn previous
-            held = constraint(state.poses[:, -1], x_t, state.controls[:, -1])
-            x_t = jnp.where(state.t > 0, held, x_t)
-            if self.residual:  # the Difference's carry is the previous pose: the held one
-                carry = (carry[0], x_t)
         new = StreamState(
             carry=carry,
             poses=jnp.concatenate([state.poses[:, 1:], x_t[:, None]], axis=1),
@@ -723,13 +718,11 @@ class MoGlow(nnx.Module):
         key: Array,
         *,
         temperature: float = 1.0,
-        constraint=None,
     ) -> tuple[Array, StreamState]:
         """One frame: control_t (B, C) -> (pose_t (B, D), new state). Jittable.
 
         The latent is ``temperature * eps`` with eps drawn from ``fold_in(key, state.t)``:
         passing the same key at every step reproduces :meth:`sample` with that key.
-        ``constraint`` as in :meth:`sample`.
         """
         shape = tuple(getattr(control_t, "shape", np.shape(control_t)))
         if shape != (state.poses.shape[0], self.control_dim):
@@ -742,7 +735,7 @@ class MoGlow(nnx.Module):
         z_t = self.base_density().sample(
             jax.random.fold_in(key, state.t), (control_t.shape[0],), temperature=temperature
         )
-        return self._advance(state, control_t, z_t, constraint)
+        return self._advance(state, control_t, z_t)
 
     def generate(
         self,
@@ -773,16 +766,11 @@ class MoGlow(nnx.Module):
         seed_history: Array | None = None,
         seed_control: Array | None = None,
         temperature: float = 1.0,
-        constraint=None,
     ) -> Array:
         """Poses (B, T, D) following control (B, T, C); one ``lax.scan`` over frames.
 
         Frame t's latent is ``temperature * eps_t``, eps_t from ``fold_in(key, t)``
         (temperature 0 gives the exact mode path of the latent). Jit it at the call site.
-        ``constraint``: None, or ``(x_{t-1} (B, D), x_t (B, D), c_{t-1} (B, C)) -> x_t``
-        in the model's units, applied to every drawn frame after the first before it
-        becomes the history (:func:`motionflows.stance.stance_constraint`: planted feet
-        held); the samples are then that constrained sampler's, not the model's density.
         On XLA:CPU, sample from :func:`motionflows.inference.inference_copy` of the model
         (the same poses, bit for bit, about twice as fast at batch 1; the library's own
         samplers do).
@@ -792,9 +780,7 @@ class MoGlow(nnx.Module):
         state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
 
         def body(st, c_t):
-            return self.stream_step(st, c_t, key, temperature=temperature, constraint=constraint)[
-                ::-1
-            ]
+            return self.stream_step(st, c_t, key, temperature=temperature)[::-1]
 
         _, xs = jax.lax.scan(body, state, jnp.swapaxes(control, 0, 1))
         return jnp.swapaxes(xs, 0, 1)
