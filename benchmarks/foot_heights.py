@@ -19,7 +19,10 @@ source:
 * ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
   window's floor (the contact rule's floor);
 * ``contact_rate`` and ``foot_sliding_m_s`` (the calibrated rule, on the windows'
-  controls; for the ground truth, how much the takes' own feet slide by that rule),
+  controls; for the ground truth, how much the takes' own feet slide by that rule), and
+  under ``absolute_1.5cm`` the same two by the ``"absolute"`` rule at 1.5 cm above y = 0
+  (the features' floor; on D2-C's takes it scores the ground truth as the calibrated rule
+  does, and a sampler whose feet sink below the floor cannot take the floor down with it),
   ``jerk`` (m/s^3, world) and ``fd_pose`` (m^2, against the ground truth windows);
 * ``stride``: over the windows whose control walks straight ahead (0.6-2 m/s forward, under
   0.5 rad of turn in 4 s; the same windows for every source, since they share controls),
@@ -78,6 +81,7 @@ DEFAULT_TAKES = (  # the performer D2-C: the masculine and normal styles of data
     f"{SHARED}/bandai_locomotion_*/dataset-2_*_normal_*.bvh",
 )
 FPS, WINDOW, HOP = 20.0, 80, 40
+ABS = {"rule": "absolute", "contact_height": 0.015}  # floor y = 0, not the window's own
 
 
 def stance_heights(pose: np.ndarray, *, fps: float) -> dict:
@@ -161,6 +165,10 @@ def main(argv: list[str] | None = None) -> int:
         return {
             **stance_heights(p, fps=FPS),
             "foot_sliding_m_s": round(float(foot_sliding(p, control, fps=FPS)), 4),
+            "absolute_1.5cm": {  # the same, with contacts below 1.5 cm above y = 0
+                "foot_sliding_m_s": round(float(foot_sliding(p, control, fps=FPS, **ABS)), 4),
+                "contact_rate": round(contact_rate(p, **ABS), 4),
+            },
             "jerk": round(float(jerk(p, fps=FPS, control=control)), 1),
             "fd_pose": round(float(frechet_pose_distance(pose, p)), 4),
             "stride": strides(p, control, fps=FPS),
