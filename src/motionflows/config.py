@@ -42,6 +42,9 @@ class DataConfig:
     tempo_replay: str = "both"
     # keep only the takes of these styles, in every split (metadata "style"; None = all)
     styles: tuple[str, ...] | None = None
+    # a take shorter than the window: "pad" it with its last pose frozen (valid False
+    # there; training sees the frozen tail, scoring uses complete windows only) or "drop" it
+    short: str = "pad"
 
     def __post_init__(self):
         _check_fields(self, DATA_LIMITS)
@@ -55,6 +58,8 @@ class DataConfig:
             raise ValueError(
                 f"data.tempo_replay must be one of {list(TEMPO_REPLAYS)}, got {self.tempo_replay!r}"
             )
+        if self.short not in ("pad", "drop"):
+            raise ValueError(f"data.short must be 'pad' or 'drop', got {self.short!r}")
 
     def load(self):
         """Build the dataset this config describes (cached on disk by the data layer)."""
@@ -77,6 +82,7 @@ class DataConfig:
             tempo=self.tempo,
             tempo_replay=self.tempo_replay,
             styles=self.styles,
+            short=self.short,
         )
 
 
