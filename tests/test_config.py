@@ -115,3 +115,18 @@ def test_overrides_parse_tuple_fields_with_element_types():
         apply_overrides(C(), ["counts=[1,x]"])
     with pytest.raises(ValueError, match="cannot read"):
         apply_overrides(C(), ["pair=1"])  # wrong arity
+
+
+def test_data_short_pads_or_drops_takes_shorter_than_the_window():
+    """``data.short`` reaches the data layer: 1.5 s synthetic takes in 2 s windows are padded
+    (frozen tails, ``valid`` False there) or dropped (then there is nothing to train on)."""
+    from motionflows.errors import MotionDataError
+
+    short = DataConfig(synthetic_clips=12, synthetic_seconds=1.5, window=40, hop=10)
+    padded = short.load().split("train")
+    assert len(padded) > 0 and not padded.valid.all()
+    with pytest.raises(MotionDataError, match="no training windows"):
+        dataclasses.replace(short, short="drop").load()
+    with pytest.raises(ValueError, match="data.short must be 'pad' or 'drop'"):
+        DataConfig(short="crop")
+    assert DataConfig().short == "pad"  # runs saved before the field keep their padding
