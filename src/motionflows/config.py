@@ -17,6 +17,7 @@ from typing import Any
 
 from motionflows.data.augment import TEMPO_REPLAYS
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S, ROOT_SIGMA_S
+from motionflows.data.pipeline import SHORT_TAKES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +59,7 @@ class DataConfig:
             raise ValueError(
                 f"data.tempo_replay must be one of {list(TEMPO_REPLAYS)}, got {self.tempo_replay!r}"
             )
-        if self.short not in ("pad", "drop"):
+        if self.short not in SHORT_TAKES:
             raise ValueError(f"data.short must be 'pad' or 'drop', got {self.short!r}")
 
     def load(self):

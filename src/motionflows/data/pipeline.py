@@ -55,13 +55,17 @@ def window_starts(length: int, window: int, hop: int) -> list[int]:
     return starts
 
 
+SHORT_TAKES: tuple[str, ...] = ("pad", "drop")
+"""What :func:`make_windows` does with a take shorter than the window (``short=``)."""
+
+
 def make_windows(
     clips: list[Clip], window: int, hop: int, *, short: str = "pad", min_frames: int | None = None
 ) -> tuple[WindowSet, dict]:
     """Cut clips into windows. Returns the set and counts (frames used, padded, dropped)."""
     if window < 2 or hop < 1:
         raise ValueError(f"window must be >= 2 and hop >= 1, got window={window}, hop={hop}")
-    if short not in ("pad", "drop"):
+    if short not in SHORT_TAKES:
         raise ValueError(f"short must be 'pad' or 'drop', got {short!r}")
     min_frames = max(2, window // 4) if min_frames is None else int(min_frames)
     poses, controls, takes, starts, valids = [], [], [], [], []
