@@ -140,6 +140,12 @@ def bench(cfg: dict, dtype: str, repeats: int, key: jax.Array, peaks: dict) -> d
     res["weight_bytes"] = roofline.tree_bytes(params)
     res["weight_read"] = roofline.weight_read(res["weight_bytes"], peaks["memory_repeats"])
     trained = _time_training(res, train_step, (params, opt_state, pose, control), peak, repeats)
+    print(
+        f"{dtype:>9} training step {res['train_step_s']:.4f} s (compile "
+        f"{res['train_compile_s']:.1f} s); timing the sampler next",
+        file=sys.stderr,
+        flush=True,
+    )
     model = nnx.merge(graph, trained, rest)
     _time_sampling(res, model, control, k_sample, repeats, peak)
     res["device_peak_bytes"] = roofline.device_peak_bytes()

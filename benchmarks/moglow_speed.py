@@ -226,6 +226,12 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     res: dict = {"dtype": dtype, "weight_bytes": weight_bytes, "weight_read": read}
     args = (params, opt_state, pose, control, k_drop)
     _time_training(res, train_step, args, peak, repeats, warmup)
+    print(
+        f"{dtype:>9} training step {res['train_step_s']:.4f} s (compile "
+        f"{res['train_compile_s']:.1f} s); timing the samplers next",
+        file=sys.stderr,
+        flush=True,
+    )
 
     n = cfg["sample_frames"]
     _time_other_samplers(res, model, cd, n, k_sample, repeats)

@@ -21,7 +21,15 @@ import jax.numpy as jnp
 from flax import nnx
 
 from motionflows.bijectors import initialize_from_data
-from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
+from motionflows.config import (
+    SMOKE_DATA,
+    DataConfig,
+    Scope,
+    TrainConfig,
+    check_compute_dtype,
+    matmul_dtype,
+    smoke_train,
+)
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
@@ -46,7 +54,7 @@ class Config:
     hidden: int = 512  # coupling nets' hidden width
     conditional: bool = True  # condition on the control signal (False = unconditional)
     prior: str = "standard"  # "standard" (paper) or "learned" (glow-pytorch split prior)
-    compute_dtype: str = "float32"  # coupling nets' conv precision: "float32" | "bfloat16"
+    compute_dtype: str = "auto"  # coupling nets' conv precision: "auto" | "float32" | "bfloat16"
     coupling: str = "affine"  # "affine" (paper) | "additive" (volume-preserving, never amplifies)
     coupling_eps: float = 1e-6  # floor of the affine coupling scale
 
@@ -65,10 +73,7 @@ class Config:
             raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
-        if self.compute_dtype not in ("float32", "bfloat16"):
-            raise ValueError(
-                f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}"
-            )
+        check_compute_dtype(self.compute_dtype)
 
 
 PRESETS: dict[str, Config] = {
@@ -176,7 +181,7 @@ def build(config: Config, *, key: jax.Array) -> Glow:
         hidden=config.hidden,
         control_dim=CONTROL_DIM if config.conditional else 0,
         prior=config.prior,
-        compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
+        compute_dtype=matmul_dtype(config.compute_dtype),
         coupling=config.coupling,
         coupling_eps=config.coupling_eps,
         length=config.data.window,

@@ -3,7 +3,8 @@
 Run: ``python -m experiments.moglow --preset quick`` (synthetic data, minutes on a CPU),
 ``--preset paper`` (the paper's locomotion configuration), ``--preset preferred`` (the same
 with history dropout 0.7), ``--set conditioner=ff`` for the Markov (feed-forward) ablation,
-``--set compute_dtype=bfloat16`` for bfloat16 conditioner matmuls.
+``--set compute_dtype=bfloat16`` (or ``float32``) to choose the conditioner matmuls' precision
+(default ``auto``: bfloat16 on a recent NVIDIA GPU, float32 elsewhere).
 
 Training objective: mean NLL per target frame (frames tau..T-1 of each window, the official
 scope), nats, standardised space, with history dropout. ``evaluate`` returns per-window
@@ -23,7 +24,15 @@ import jax
 import jax.numpy as jnp
 
 from motionflows.bijectors import initialize_from_data
-from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig, smoke_train
+from motionflows.config import (
+    SMOKE_DATA,
+    DataConfig,
+    Scope,
+    TrainConfig,
+    check_compute_dtype,
+    matmul_dtype,
+    smoke_train,
+)
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.deprecation import key_first
@@ -48,7 +57,7 @@ class Config:
     layers: int = 2  # coupling LSTM layers
     tau: int = 10  # history frames in the condition
     dropout: float = 0.95  # history dropout probability (training)
-    compute_dtype: str = "float32"  # conditioner matmuls: "float32" | "bfloat16"
+    compute_dtype: str = "auto"  # conditioner matmuls: "auto" | "float32" | "bfloat16"
     conditioner: str = "lstm"  # "lstm" (MoGlow) | "ff" (Markov ablation)
     base: str = "normal"  # "normal" | "studentt"
     df: float = 5.0  # Student-t degrees of freedom (base = "studentt")
@@ -100,10 +109,7 @@ class Config:
                 f"own_history_target must be one of {', '.join(OWN_HISTORY_TARGETS)}, "
                 f"got {self.own_history_target!r}"
             )
-        if self.compute_dtype not in ("float32", "bfloat16"):
-            raise ValueError(
-                f"compute_dtype must be 'float32' or 'bfloat16', got {self.compute_dtype!r}"
-            )
+        check_compute_dtype(self.compute_dtype)
         if self.conditioner not in ("lstm", "ff"):
             raise ValueError(f"conditioner must be 'lstm' or 'ff', got {self.conditioner!r}")
         if self.base not in ("normal", "studentt"):
@@ -244,7 +250,7 @@ def build(config: Config, *, key: jax.Array) -> MoGlow:
         base=config.base,
         df=config.df,
         dropout=config.dropout,
-        compute_dtype=None if config.compute_dtype == "float32" else config.compute_dtype,
+        compute_dtype=matmul_dtype(config.compute_dtype),
         residual=config.residual,
         dropout_keeps_last=config.dropout_keeps_last,
         history_noise=config.history_noise,

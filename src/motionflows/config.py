@@ -19,6 +19,51 @@ from motionflows.data.augment import TEMPO_REPLAYS
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S, ROOT_SIGMA_S
 from motionflows.data.pipeline import SHORT_TAKES
 
+COMPUTE_DTYPES = ("auto", "float32", "bfloat16")
+"""Values of the flows' ``compute_dtype`` field, the precision of their conditioner matmuls
+(float32 accumulation either way). "auto", the default, is bfloat16 on an NVIDIA GPU with
+bfloat16 tensor cores (compute capability 8.0 or more) and float32 elsewhere: on an H200
+bfloat16 trained the paper-size MoGlow 1.17x and the fixed-length Glow 1.09x faster than
+float32 at the same validation NLL, while on CPUs float32 is the exact, tested path
+(docs/readme/speed.md, GPU)."""
+
+
+def check_compute_dtype(value: str) -> None:
+    """Raise ``ValueError`` unless ``value`` is one of :data:`COMPUTE_DTYPES`."""
+    if value not in COMPUTE_DTYPES:
+        raise ValueError(
+            f"compute_dtype must be one of {', '.join(map(repr, COMPUTE_DTYPES))}, got {value!r}"
+        )
+
+
+def auto_compute_dtype() -> str:
+    """What "auto" means on this machine: "bfloat16" on a GPU of compute capability 8.0 or
+    more (bfloat16 tensor cores), "float32" on CPUs, older GPUs and other backends."""
+    import jax
+
+    if jax.default_backend() != "gpu":
+        return "float32"
+    capability = str(getattr(jax.devices()[0], "compute_capability", ""))
+    major = capability.split(".")[0]
+    return "bfloat16" if major.isdigit() and int(major) >= 8 else "float32"
+
+
+def resolve_compute_dtype(config: Any) -> Any:
+    """``config`` with ``compute_dtype="auto"`` replaced by :func:`auto_compute_dtype`; a
+    config with an explicit dtype, or without the field, comes back unchanged. Training
+    saves the resolved config, so a run reloads and resumes in the precision it was
+    trained in on any machine, and the bench compares runs by the precision they use."""
+    if getattr(config, "compute_dtype", None) != "auto":
+        return config
+    return dataclasses.replace(config, compute_dtype=auto_compute_dtype())
+
+
+def matmul_dtype(value: str) -> str | None:
+    """The models' ``compute_dtype`` argument for a config's value: None (plain float32
+    matmuls) or "bfloat16"; "auto" is resolved for this machine first."""
+    value = auto_compute_dtype() if value == "auto" else value
+    return None if value == "float32" else value
+
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:

@@ -224,6 +224,7 @@ def train(
     is dispatched (testing hook; ``out`` holds device arrays).
     """
     module = runs.resolve_experiment(module)
+    config = cfg.resolve_compute_dtype(config)  # config.json names the precision used
     run_dir = Path(run_dir)
     tc = config.train
     ckdir = run_dir / "checkpoints"

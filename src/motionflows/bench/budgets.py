@@ -18,7 +18,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from motionflows.config import SMOKE_DATA, DataConfig, apply_overrides, has_override_key
+from motionflows.config import (
+    SMOKE_DATA,
+    DataConfig,
+    apply_overrides,
+    has_override_key,
+    resolve_compute_dtype,
+)
 from motionflows.errors import RunError
 
 BUDGETS: dict[str, str] = {"smoke": "smoke", "quick": "quick", "cpu": "cpu", "full": "paper"}
@@ -207,7 +213,8 @@ def bench_config(
                 f"augmentation: {', '.join(TRAINING_AUGMENTATION)})"
             )
     applied = [item for item in overrides if has_override_key(config, item)]
-    config = apply_overrides(config, applied)
+    # "auto" precision resolved here: runs are found by the precision they were trained in
+    config = resolve_compute_dtype(apply_overrides(config, applied))
     provenance = {
         "experiment": getattr(exp, "NAME", entry.experiment),
         "module": exp.__name__,
