@@ -154,6 +154,7 @@ PRESETS["cpu"] = Config(
     K=8,
     hidden=128,
     coupling="additive",
+    compute_dtype="float32",  # a CPU budget: the precision it was searched and shipped in
 )
 # Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
 PRESETS["smoke"] = dataclasses.replace(

@@ -201,6 +201,7 @@ PRESETS["cpu"] = dataclasses.replace(
     ),
     residual=True,
     history_noise=0.03,
+    compute_dtype="float32",  # a CPU budget: the precision it was searched and shipped in
 )
 # Seconds: tests and the bench's smoke budget (a CI-sized flow, 30 steps, 1.6 s windows).
 PRESETS["smoke"] = dataclasses.replace(

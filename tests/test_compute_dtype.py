@@ -41,6 +41,7 @@ def test_auto_is_float32_on_the_cpu_and_explicit_choices_stay():
     for name in FLOWS:
         module = importlib.import_module(f"experiments.{name}")
         assert module.PRESETS["paper"].compute_dtype == "auto"
+        assert module.PRESETS["cpu"].compute_dtype == "float32"  # a CPU budget, as shipped
         assert cfg.resolve_compute_dtype(module.PRESETS["paper"]).compute_dtype == "float32"
         chosen = cfg.apply_overrides(module.PRESETS["quick"], ["compute_dtype=bfloat16"])
         assert cfg.resolve_compute_dtype(chosen) is chosen
