@@ -10,8 +10,10 @@ Sampling and streaming are timed as the library does them: ``sample`` from
 :func:`motionflows.inference.inference_copy` of the trained model (each flow step's weights
 in their own buffers; the same poses), ``stream_step`` on
 :func:`motionflows.inference.streaming_model` (that copy for float32, the model itself for
-bfloat16 matmuls). ``stacked_sample_*`` times ``sample`` on the model
-itself (the training layout, K steps stacked; what every sampler used before 2026-12-03).
+bfloat16 matmuls) through :func:`motionflows.inference.stream_stepper` (the module split
+once; before 2026-12-04 each call passed the module itself). ``stacked_sample_*`` times
+``sample`` on the model itself (the training layout, K steps stacked; what every sampler
+used before 2026-12-03).
 The bfloat16 run trains and samples with bfloat16 conditioner matmuls (float32 weights); it
 also times ``sample`` from ``inference_copy(model, "bfloat16")`` (the weights *stored* in
 bfloat16, half the bytes a batch-1 frame reads): ``inference_copy_sample_*``.
@@ -43,7 +45,7 @@ from flax import nnx
 from motionflows import roofline
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
-from motionflows.inference import inference_copy, streaming_model
+from motionflows.inference import inference_copy, stream_stepper, streaming_model
 from motionflows.models.moglow import MoGlow
 
 PAPER = {
@@ -189,14 +191,14 @@ def _time_sampling(res: dict, model, ctrl, key, repeats: int, bounds: dict) -> d
 def _time_streaming(res: dict, model, ctrl, key, floor: dict) -> None:
     """Add the latency of one jitted ``stream_step`` per frame from the host (game loop)."""
     batch, n = ctrl.shape[:2]
-    step = jax.jit(lambda m, s, c, k: m.stream_step(s, c, k))
+    step = stream_stepper(model)  # as motionflows play calls it
     stream = model.init_stream(batch)
-    x_t, stream = step(model, stream, ctrl[:, 0], key)
+    x_t, stream = step(stream, ctrl[:, 0], key)
     x_t.block_until_ready()
     lat = []
     for i in range(1, n):
         t0 = time.perf_counter()
-        x_t, stream = step(model, stream, ctrl[:, i], key)
+        x_t, stream = step(stream, ctrl[:, i], key)
         x_t.block_until_ready()
         lat.append(time.perf_counter() - t0)
     res[f"stream_step_ms_b{batch}_median"] = 1e3 * statistics.median(lat)

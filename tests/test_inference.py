@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import warnings
 
 import jax
@@ -140,3 +142,40 @@ def test_copy_of_a_bfloat16_model_stores_its_weights_in_bfloat16_with_the_same_n
         sample(copy, jax.random.key(5), control), sample(model, jax.random.key(5), control),
         atol=1e-5,
     )  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [None, "bfloat16"])
+def test_stream_stepper_draws_samples_frames_from_the_module_split_once(dtype):
+    """``stream_stepper`` (weights as one flat list of arrays, the module rebuilt only while
+    tracing) draws ``sample``'s frames, follows a traced temperature, and a non-Flax model
+    streams through it too."""
+    from motionflows.inference import stream_stepper
+
+    model = MoGlow(D, C, tau=TAU, K=K, hidden=H, num_layers=2, compute_dtype=dtype,
+                   rngs=jax.random.key(6))  # fmt: skip
+    model = streaming_model(perturbed(model, jax.random.key(7)))
+    control = jax.random.normal(jax.random.key(8), (2, 5, C))
+    key = jax.random.key(9)
+    step = stream_stepper(model)
+    state, frames = model.init_stream(2), []
+    for t in range(control.shape[1]):
+        pose, state = step(state, control[:, t], key, 0.7)
+        frames.append(pose)
+    want = model.sample(key, control, temperature=0.7)
+    np.testing.assert_allclose(jnp.stack(frames, 1), want, rtol=1e-5, atol=1e-5)
+    mode, _ = step(model.init_stream(2), control[:, 0], key, 0.0)
+    np.testing.assert_allclose(mode, model.sample(key, control[:, :1], temperature=0.0)[:, 0],
+                               rtol=1e-5, atol=1e-5)  # fmt: skip
+    assert not np.allclose(mode, frames[0])
+
+    @functools.partial(jax.tree_util.register_dataclass, data_fields=["scale"], meta_fields=[])
+    @dataclasses.dataclass
+    class Plain:  # a pytree model with the streaming API, not a Flax module
+        scale: jax.Array
+
+        def stream_step(self, state, control_t, key, temperature=1.0):
+            return self.scale * temperature * control_t, state + 1
+
+    pose, count = stream_stepper(Plain(jnp.float32(3.0)))(jnp.int32(0), control[:, 0], key, 2.0)
+    np.testing.assert_allclose(pose, 6.0 * control[:, 0], rtol=1e-6)
+    assert int(count) == 1

@@ -32,7 +32,7 @@ from flax import nnx
 
 from motionflows.data.names import NUM_JOINTS, POSE_DIM
 from motionflows.foot_lock import StreamingFootLock, _to_root_frame
-from motionflows.inference import streaming_model
+from motionflows.inference import stream_stepper, streaming_model
 
 RAMP_SECONDS = 0.25
 """Time constant of the control ramp: 63 % of a change is applied after this many seconds."""
@@ -66,18 +66,6 @@ def advance(position: np.ndarray, yaw: float, control: np.ndarray) -> tuple[np.n
     cos, sin = math.cos(yaw), math.sin(yaw)
     step = np.array([side * cos + fwd * sin, 0.0, -side * sin + fwd * cos])
     return position + step, yaw + turn
-
-
-def _jitted_step(model: Any):
-    """``(state, control (1, 3), key, temperature) -> (pose (1, 63), state)``, jitted once.
-
-    The model enters as an argument (a pytree), not a constant baked into the program."""
-
-    @jax.jit
-    def step(model, state, control, key, temperature):
-        return model.stream_step(state, control, key, temperature=temperature)
-
-    return lambda state, control, key, temperature: step(model, state, control, key, temperature)
 
 
 class Character:
@@ -118,7 +106,7 @@ class Character:
             model = streaming_model(model)
         self.model, self.standardizer, self.fps = model, standardizer, float(fps)
         self.temperature = float(temperature)
-        self._step = _jitted_step(model)
+        self._step = stream_stepper(model)
         self._base_key = jax.random.key(seed)
         self.foot_lock = StreamingFootLock(fps=self.fps) if foot_lock else None
         self._lock = threading.Lock()
