@@ -135,3 +135,12 @@ def test_gemv_layout_quick_reports_every_form_against_the_reference():
     # every form computes the same product: float32 to rounding, bfloat16 to its precision
     for name, row in forms.items():
         assert row["max_abs_difference"] < (1e-4 if name.startswith("float32") else 5e-2), name
+
+
+def test_gpu_speed_script_parses_and_asks_for_its_output_folder():
+    """benchmarks/gpu_speed.sh runs only where a GPU is lent: here it must at least be valid
+    bash and stop with its usage line when OUTDIR is missing (before any work)."""
+    script = ROOT / "benchmarks" / "gpu_speed.sh"
+    assert subprocess.run(["bash", "-n", str(script)], capture_output=True).returncode == 0
+    proc = subprocess.run(["bash", str(script)], capture_output=True, text=True, timeout=30)
+    assert proc.returncode != 0 and "usage: benchmarks/gpu_speed.sh OUTDIR" in proc.stderr
