@@ -92,10 +92,11 @@ def stream_stepper(model: Any) -> Callable:
     itself would have every call walk its graph in Python to flatten it, about 15 us per
     array. That cost grows with the arrays, and the :func:`inference_copy` that streams
     fastest holds K times more of them: for a K = 16, 2 x 64 MoGlow copy (272 arrays) a
-    call took 9.9 ms with the module as the argument against 5.4 ms from the flat list on
-    the 2-core EPYC, the same poses. Any other pytree model is passed as it is. ``temperature``
-    is traced: changing it does not recompile. The model's own state is not updated (as
-    under ``jax.jit`` with the module as an argument): ``stream_step`` is pure in its key.
+    call took 8.3-9.9 ms with the module as the argument against 3.6-5.4 ms from the flat
+    list on the 2-core EPYC (three runs), the same poses. Any other pytree model is passed
+    as it is. ``temperature`` is traced: changing it does not recompile. The model's own
+    state is not updated (as under ``jax.jit`` with the module as an argument):
+    ``stream_step`` is pure in its key.
     """
     if not isinstance(model, nnx.Module):
         jitted = jax.jit(lambda m, s, c, k, t: m.stream_step(s, c, k, temperature=t))
