@@ -293,10 +293,14 @@ def trained():
         return optax.apply_updates(params, updates), opt, value
 
     losses = []
-    for i in range(250):
-        batch = ds.batch("train", 32, seed=0, index=i)
-        params, opt, value = step(params, opt, batch, jax.random.fold_in(key, i))
-        losses.append(float(value))
+    # optax's Adam computes float ** int32 (the standard_dtypes marker's reason); a module
+    # fixture runs before the per-test promotion context, under the process default, which
+    # is strict in pytest-xdist's workers (they inherit JAX_NUMPY_DTYPE_PROMOTION=strict)
+    with jax.numpy_dtype_promotion("standard"):
+        for i in range(250):
+            batch = ds.batch("train", 32, seed=0, index=i)
+            params, opt, value = step(params, opt, batch, jax.random.fold_in(key, i))
+            losses.append(float(value))
     return nnx.merge(graphdef, params, rest), ds, losses
 
 
