@@ -98,21 +98,21 @@ def stream_stepper(model: Any) -> Callable:
     state is not updated (as under ``jax.jit`` with the module as an argument):
     ``stream_step`` is pure in its key.
     """
-    if not isinstance(model, nnx.Module):
-        jitted = jax.jit(lambda m, s, c, k, t: m.stream_step(s, c, k, temperature=t))
-        return lambda state, control_t, key, temperature=1.0: jitted(
-            model, state, control_t, key, temperature
+    weights, rebuild = model, lambda weights: weights  # any pytree model: passed as it is
+    if isinstance(model, nnx.Module):
+        graphdef, state = nnx.split(model)
+        weights, treedef = jax.tree.flatten(state)
+
+        def rebuild(weights):  # runs while tracing only
+            return nnx.merge(graphdef, jax.tree.unflatten(treedef, weights))
+
+    jitted = jax.jit(
+        lambda weights, state, control_t, key, temperature: rebuild(weights).stream_step(
+            state, control_t, key, temperature=temperature
         )
-    graphdef, params = nnx.split(model)
-    leaves, treedef = jax.tree.flatten(params)
-
-    @jax.jit
-    def step(leaves, state, control_t, key, temperature):
-        module = nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves))
-        return module.stream_step(state, control_t, key, temperature=temperature)
-
-    return lambda state, control_t, key, temperature=1.0: step(
-        leaves, state, control_t, key, temperature
+    )
+    return lambda state, control_t, key, temperature=1.0: jitted(
+        weights, state, control_t, key, temperature
     )
 
 
