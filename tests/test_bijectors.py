@@ -433,6 +433,19 @@ def test_frames_of_frame_mixing_bijectors_raise():
         bj.ActNorm(D).inverse_step(jnp.float32(1.0))
 
 
+def test_difference_with_move_names_the_missing_context_on_every_path():
+    diff = bj.Difference(D, move=lambda previous, c: previous + jnp.sum(c))
+    x = jnp.ones((2, 4, D))
+    for call in (
+        lambda: diff.forward_and_log_det(x),
+        lambda: diff.inverse_and_log_det(x),
+        lambda: diff.forward_step(x[:, 0]),
+        lambda: diff.inverse_step(x[:, 0]),
+    ):
+        with pytest.raises(ValueError, match="needs the context of each frame"):
+            call()
+
+
 # ----------------------------------------------------------------------------- ActNorm init
 
 

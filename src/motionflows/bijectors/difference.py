@@ -40,12 +40,18 @@ class Difference(Bijector):
         self.num_channels = int(num_channels)
         self.move = move
 
+    def _require_context(self, context: Array | None) -> Array:
+        if context is None:
+            raise ValueError(
+                "Difference with move needs the context of each frame (context (..., T, C) "
+                "for a sequence, context_t (..., C) for a frame step)"
+            )
+        return context
+
     def _moved(self, previous: Array, context: Array | None) -> Array:
         if self.move is None:
             return previous
-        if context is None:
-            raise ValueError("Difference with move needs the context (context_t) of each frame")
-        return self.move(previous, context)
+        return self.move(previous, self._require_context(context))
 
     def _zero(self, x: Array) -> Array:
         return jnp.zeros(x.shape[:-2], jnp.float32)
@@ -59,8 +65,7 @@ class Difference(Bijector):
         check_event(x, self.num_channels, "Difference")
         if self.move is None:
             return jnp.cumsum(x, axis=-2), self._zero(x)
-        if context is None:
-            raise ValueError("Difference with move needs the context (..., T, C) of each frame")
+        context = self._require_context(context)
 
         def body(previous, inputs):
             u_t, c_t = inputs
