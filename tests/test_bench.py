@@ -340,6 +340,33 @@ def test_clear_errors(tmp_path, capsys):
     assert "unknown model" in capsys.readouterr().err
 
 
+def test_no_progress_trains_without_bars_and_keeps_the_bench_lines(monkeypatch, tmp_path):
+    from motionflows.bench import benchmark, reuse
+
+    seen = {}
+    monkeypatch.setattr(benchmark, "run_benchmark", lambda **kw: seen.update(kw) or {})
+    args = ["--models", "linear_ar", "--budget", "smoke", "--out", str(tmp_path)]
+    assert bench.main(args) == 0 and seen["training_bars"] is True
+    assert bench.main([*args, "--no-progress"]) == 0 and seen["training_bars"] is False
+    # down to the training call: no bar, while the bench's own lines still go to progress
+    lines, trained = [], {}
+
+    def fake_train_run(exp, config, run_dir, *, preset, progress, dataset=None):
+        trained["progress"] = progress
+
+    monkeypatch.setattr(reuse, "train_run", fake_train_run)
+    exp = bench.load_experiment("linear_ar")
+    data = bench.parse_data_spec("synthetic", "smoke")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    for bars in (True, False):
+        reuse.obtain_run(
+            "linear_ar", exp, config, prov, runs_dir=tmp_path / "runs", budget="smoke",
+            data_tag="synthetic", retrain=True, progress=lines.append, training_bars=bars,
+        )  # fmt: skip
+        assert bool(trained["progress"]) is bars
+    assert sum("training smoke preset" in line for line in lines) == 2
+
+
 def test_motion_metrics_count_and_drop_diverged_samples():
     rng = np.random.default_rng(0)
     ds = load_dataset("synthetic", n_clips=4, seconds=4.0, window=40, hop=40, cache=False)

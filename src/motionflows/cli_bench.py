@@ -68,6 +68,12 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--retrain", action="store_true", help="train even if a finished run exists")
     p.add_argument("--no-gifs", dest="gifs", action="store_false", help="skip the GIFs")
     p.add_argument(
+        "--no-progress",
+        dest="training_bars",
+        action="store_false",
+        help="no training progress bars (the time-stamped bench lines stay): for a log file",
+    )
+    p.add_argument(
         "--estimate",
         action="store_true",
         help="only time a few training steps per model and print the projected "
@@ -124,6 +130,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             runs_dir=args.runs_dir, temperature=args.temperature, seed=args.seed,
             performer_split=args.performer_split, retrain=args.retrain, gifs=args.gifs,
             command=_command(args, names), test_data=args.test_data, overrides=args.set,
+            training_bars=args.training_bars,
         )  # fmt: skip
     except (RunError, ValueError, MotionDataError) as err:
         print(f"motionflows bench: error: {err}", file=sys.stderr)

@@ -97,7 +97,10 @@ class _Loaded:
     chunk: int
 
 
-def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, dataset, overrides):
+def _obtain(
+    name, entry, *, data, budget, sizes, runs_dir, retrain, progress, dataset, overrides,
+    training_bars,
+):  # fmt: skip
     """Train or reuse the model's run, fill the provenance of ``entry``, load the model."""
     import jax
 
@@ -113,6 +116,7 @@ def _obtain(name, entry, *, data, budget, sizes, runs_dir, retrain, progress, da
     run_dir, reused, secs = obtain_run(
         name, exp, config, prov, runs_dir=Path(runs_dir), budget=budget, data_tag=data_tag(data),
         retrain=retrain, progress=progress, dataset=None if own_training_data else dataset,
+        training_bars=training_bars,
     )  # fmt: skip
     entry.setdefault("timings", {})["train"] = {"wall_s": secs, "cpu_s": time.process_time() - c0}
     entry.update(run_dir=str(run_dir), reused=reused, train_seconds=secs, steps=config.train.steps)
@@ -199,6 +203,7 @@ def bench_model(
     likelihood_only: bool = False,
     dataset=None,
     overrides: Sequence[str] = (),
+    training_bars: bool = True,
 ) -> dict:
     """Everything the report holds about one model; ``entry["_samples"]`` (metres, not saved
     to JSON) keeps the motion samples for the GIFs."""
@@ -210,6 +215,7 @@ def bench_model(
         loaded = _obtain(
             name, entry, data=data, budget=budget, sizes=sizes, runs_dir=runs_dir,
             retrain=retrain, progress=progress, dataset=dataset, overrides=overrides,
+            training_bars=training_bars,
         )  # fmt: skip
         log(progress, f"{name}: likelihood on test and train windows")
         test, train = _likelihood(loaded, sizes, key)
@@ -420,6 +426,7 @@ def run_benchmark(
     progress=print,
     test_data: str | None = None,
     overrides: Sequence[str] = (),
+    training_bars: bool = True,
 ) -> dict:
     """Train (or reuse) every model on one data configuration, score, sample, time and report.
 
@@ -433,6 +440,8 @@ def run_benchmark(
     complete windows of those takes (cut at the bench's fps, window and hop, standardised
     with the training standardiser). ``overrides``: ``key=value`` config changes (``--set``,
     e.g. ``train.seed=1``) applied to every model whose config has the key.
+    ``training_bars=False`` trains without progress bars (``--no-progress``); the
+    time-stamped ``progress`` lines stay.
     """
     wall0 = time.perf_counter()
     _check(budget, temperature)
@@ -464,8 +473,9 @@ def run_benchmark(
     results.setdefault("ground_truth", {"motion": None})
     results.update(motion_metrics=dict(MOTION_METRICS), motion_note=report.MOTION_NOTE)
     options = dict(
-        temperature=temperature, seed=seed, retrain=retrain, strict=strict, overrides=overrides
-    )
+        temperature=temperature, seed=seed, retrain=retrain, strict=strict, overrides=overrides,
+        training_bars=training_bars,
+    )  # fmt: skip
     samples = {}
     for name in names:
         log(progress, f"== {name}")

@@ -95,8 +95,10 @@ def obtain_run(
     retrain: bool,
     progress,
     dataset=None,
+    training_bars: bool = True,
 ) -> tuple[Path, bool, float]:
-    """(run_dir, reused, training seconds): reuse a finished identical run or train one."""
+    """(run_dir, reused, training seconds): reuse a finished identical run or train one;
+    ``training_bars=False`` trains without the progress bar (``progress`` lines stay)."""
     experiment = provenance["experiment"]
     if not retrain:
         found = find_run(runs_dir, experiment, config, sampling_fields=sampling_fields_of(exp))
@@ -111,7 +113,8 @@ def obtain_run(
         f"({config.train.steps} steps) -> {run_dir}",
     )
     t0 = time.perf_counter()
-    train_run(exp, config, run_dir, preset=provenance["preset"], progress=progress, dataset=dataset)
+    bars = progress if training_bars else None
+    train_run(exp, config, run_dir, preset=provenance["preset"], progress=bars, dataset=dataset)
     return run_dir, False, time.perf_counter() - t0
 
 
