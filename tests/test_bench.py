@@ -343,11 +343,28 @@ def test_clear_errors(tmp_path, capsys):
 def test_no_progress_trains_without_bars_and_keeps_the_bench_lines(monkeypatch, tmp_path):
     from motionflows.bench import benchmark, reuse
 
-    seen = {}
+    seen, run_benchmark = {}, benchmark.run_benchmark
     monkeypatch.setattr(benchmark, "run_benchmark", lambda **kw: seen.update(kw) or {})
     args = ["--models", "linear_ar", "--budget", "smoke", "--out", str(tmp_path)]
     assert bench.main(args) == 0 and seen["training_bars"] is True
     assert bench.main([*args, "--no-progress"]) == 0 and seen["training_bars"] is False
+
+    # run_benchmark hands it to obtain_run (stopped there: nothing is trained)
+    class Reached(Exception):
+        pass
+
+    def fake_obtain_run(*args, training_bars, **kwargs):
+        seen["obtain_run"] = training_bars
+        raise Reached
+
+    with monkeypatch.context() as m:
+        m.setattr(benchmark, "obtain_run", fake_obtain_run)
+        with pytest.raises(Reached):
+            run_benchmark(
+                models="linear_ar", budget="smoke", out=tmp_path / "o", runs_dir=tmp_path / "r",
+                strict=True, progress=None, training_bars=False,
+            )  # fmt: skip
+    assert seen["obtain_run"] is False
     # down to the training call: no bar, while the bench's own lines still go to progress
     lines, trained = [], {}
 
