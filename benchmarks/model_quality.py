@@ -28,6 +28,7 @@ import numpy as np
 
 from motionflows import bench, runs
 from motionflows.config import apply_overrides
+from motionflows.run import restore_run
 from motionflows.training import load_run, train
 from motionflows.windows import pick, standardized
 
@@ -47,11 +48,13 @@ def score(
     split: str = "test",
     checkpoint: str = "latest",
 ):
-    """Rows of motion metrics (per temperature) and the likelihood of a checkpoint, on the
-    windows and controls of ``split``."""
+    """``(rows, nll, gt, step)``: rows of motion metrics (per temperature) and the
+    likelihood of a checkpoint, on the windows and controls of ``split``; the ground truth's
+    metrics; the training step of the checkpoint scored (a run's best checkpoint can be
+    older than its last step)."""
     import jax
 
-    exp, config, model, _ = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
+    exp, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
     key = jax.random.key(seed)
     lik = bench.score_likelihood(
         exp, model, config, dataset, split, limit=windows, key=key, num_bootstrap=200
@@ -82,7 +85,7 @@ def score(
            for s, r in lik.items()}  # fmt: skip
     gt = bench.motion_metrics(gt_m, control_m, gt_m, None, fps)
     gt["diversity"] = bench.natural_diversity_of(part)
-    return rows, nll, gt
+    return rows, nll, gt, int(saved["meta"]["step"])
 
 
 def main(argv=None) -> int:
@@ -98,7 +101,12 @@ def main(argv=None) -> int:
     p.add_argument("--sample-windows", type=int, default=64, help="test controls sampled")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--on", default="test", choices=["val", "test"], help="split scored")
-    p.add_argument("--run", default=None, help="score this run (a path or pretrained:NAME) only")
+    p.add_argument(
+        "--run",
+        default=None,
+        help="score this run (a path or pretrained:NAME) only, at its best checkpoint "
+        "(the `steps` column is that checkpoint's step)",
+    )
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
 
@@ -121,12 +129,11 @@ def main(argv=None) -> int:
     results = []
     if args.run:  # score an existing run (its own data config) at its best checkpoint
         run_path = runs.resolve_run_dir(args.run)  # a path or pretrained:NAME
-        _, run_config, _, dataset = load_run(run_path)
-        rows, nll, gt = score(run_path, dataset, temps, windows=args.windows,
-                              seed=args.seed, sample_windows=args.sample_windows,
-                              split=args.on, checkpoint="best")  # fmt: skip
-        steps = int(run_config.train.steps)
-        results = [{"steps": steps, "train_s": None, "nll": nll, **row} for row in rows]
+        _, _, _, dataset = load_run(run_path)
+        rows, nll, gt, step = score(run_path, dataset, temps, windows=args.windows,
+                                    seed=args.seed, sample_windows=args.sample_windows,
+                                    split=args.on, checkpoint="best")  # fmt: skip
+        results = [{"steps": step, "train_s": None, "nll": nll, **row} for row in rows]
         for rec in results:
             print(json.dumps(rec), flush=True)
         out.mkdir(parents=True, exist_ok=True)
@@ -140,7 +147,7 @@ def main(argv=None) -> int:
         train(exp, cfg, run_dir=run_dir, preset=args.preset, resume=resume, dataset=dataset,
               progress=False)  # fmt: skip
         train_s = time.perf_counter() - t0
-        rows, nll, gt = score(
+        rows, nll, gt, _ = score(
             run_dir,
             dataset,
             temps,

@@ -137,6 +137,30 @@ def test_pretrained_names_and_cli(exported, monkeypatch, tmp_path, capsys):
     assert info["notes"] == "trained on the tiny set" and info["temperature"] == 0.6
 
 
+def test_model_quality_labels_its_rows_with_the_step_it_scored(
+    exported, benchmark_script, tmp_path, capsys
+):
+    """``benchmarks/model_quality.py --run`` scores the best checkpoint and says which step
+    that is, not the step count the run was configured for (a best checkpoint can be older,
+    a run can have stopped early)."""
+    import shutil
+
+    _, out = exported
+    run = tmp_path / "stopped-early"
+    shutil.copytree(out, run)
+    config = json.loads((run / "config.json").read_text())
+    config["config"]["train"]["steps"] = 500  # configured for 500 steps; its checkpoint: 3
+    (run / "config.json").write_text(json.dumps(config))
+    script = benchmark_script("model_quality")
+    argv = ["moglow", "--run", str(run), "--temperatures", "1.0", "--windows", "4",
+            "--sample-windows", "4", "--out", str(tmp_path / "quality")]  # fmt: skip
+    assert script.main(argv) == 0
+    (row,) = [json.loads(line) for line in capsys.readouterr().out.splitlines()
+              if line.startswith("{")]  # fmt: skip
+    assert row["steps"] == 3
+    assert "| 3 | 1 |" in (tmp_path / "quality" / "QUALITY.md").read_text()
+
+
 def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, capsys):
     run_dir, out = exported  # two run directories of the same tiny model
     args = ["--control", "walk", "--seconds", "1", "--temperature", "0.7", "--out", str(tmp_path),
