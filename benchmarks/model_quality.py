@@ -29,7 +29,7 @@ import numpy as np
 from motionflows import bench, runs
 from motionflows.config import apply_overrides
 from motionflows.run import restore_run
-from motionflows.training import load_run, train
+from motionflows.training import train
 from motionflows.windows import pick, standardized
 
 
@@ -51,10 +51,12 @@ def score(
     """``(rows, nll, gt, step)``: rows of motion metrics (per temperature) and the
     likelihood of a checkpoint, on the windows and controls of ``split``; the ground truth's
     metrics; the training step of the checkpoint scored (a run's best checkpoint can be
-    older than its last step)."""
+    older than its last step). ``dataset=None`` loads the run's own data."""
     import jax
 
     exp, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
+    if dataset is None:
+        dataset = config.data.load()
     key = jax.random.key(seed)
     lik = bench.score_likelihood(
         exp, model, config, dataset, split, limit=windows, key=key, num_bootstrap=200
@@ -129,8 +131,7 @@ def main(argv=None) -> int:
     results = []
     if args.run:  # score an existing run (its own data config) at its best checkpoint
         run_path = runs.resolve_run_dir(args.run)  # a path or pretrained:NAME
-        _, _, _, dataset = load_run(run_path)
-        rows, nll, gt, step = score(run_path, dataset, temps, windows=args.windows,
+        rows, nll, gt, step = score(run_path, None, temps, windows=args.windows,
                                     seed=args.seed, sample_windows=args.sample_windows,
                                     split=args.on, checkpoint="best")  # fmt: skip
         results = [{"steps": step, "train_s": None, "nll": nll, **row} for row in rows]
