@@ -243,11 +243,13 @@ SCOPES: dict[str, Scope] = {
 }
 
 
-def build(config: Config, *, key: jax.Array) -> MoGlow:
-    """The MoGlow of ``config`` with fresh parameters drawn from ``key``."""
+def build(config: Config, *, key: jax.Array, control_dim: int = CONTROL_DIM) -> MoGlow:
+    """The MoGlow of ``config`` with fresh parameters drawn from ``key``; ``control_dim``
+    for controls with more channels than the 3 root moves (e.g. the contact-label oracle of
+    ``benchmarks/contact_oracle.py``)."""
     return MoGlow(
         POSE_DIM,
-        CONTROL_DIM,
+        control_dim,
         tau=config.tau,
         K=config.K,
         hidden=config.hidden,
@@ -337,7 +339,12 @@ def sample(
     """
     key, control = key_first("moglow.sample", key, control)
     control, seed_history = check_sample_args(
-        control, temperature, seed_history, "moglow.sample", seed_pose=seed_pose
+        control,
+        temperature,
+        seed_history,
+        "moglow.sample",
+        control_dim=model.control_dim,
+        seed_pose=seed_pose,
     )
     sampler = inference_copy(model)
     return _sample(sampler, key, control, jnp.float32(temperature), seed_history)
