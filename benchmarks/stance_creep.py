@@ -37,7 +37,7 @@ from motionflows.data.names import FOOT_JOINTS, NUM_JOINTS
 from motionflows.data.pipeline import make_windows
 from motionflows.errors import RunError
 from motionflows.evaluation.motion import foot_contacts, foot_sliding, to_global
-from motionflows.models.moglow import MoGlow, build_conditions, previous_frames
+from motionflows.models.moglow import MoGlow
 from motionflows.pretrained.model import PretrainedModel
 from motionflows.runs import resolve_run_dir
 
@@ -52,12 +52,11 @@ FPS, WINDOW, HOP = 20.0, 80, 40
 def one_step(model: MoGlow, pose_std, control_std, key, temperature: float) -> jax.Array:
     """Frame t drawn from the real history and controls, for every official target frame:
     (B, T - tau, D), standardised."""
-    targets, cond = build_conditions(pose_std, control_std, model.tau, scope="official")
+    targets, cond, previous = model.conditions(pose_std, control_std, scope="official")
     z = temperature * model.base_density().sample(key, targets.shape[:-1])
     u = model.flow.forward(z, context=cond)
     if not model.residual:
         return u
-    previous = previous_frames(pose_std, model.tau, "official")
     return model._difference().forward_step(u, context_t=cond, carry=previous)[0]
 
 

@@ -67,6 +67,7 @@ class Config:
     residual_world: bool = False  # residual taken in the world: planted feet change by 0
     world_joints: str = "all"  # with residual_world: "all" joints or the "feet" only
     absolute_foot_heights: bool = False  # with residual: the feet's heights flowed, not changed
+    stance_hint: bool = False  # condition on where a planted foot would be (an ablation)
     own_history: float = 0.0  # P(a history frame is the model's own draw) in training
     own_history_passes: int = 1  # draws from drawn histories: up to this many frames deep
     own_history_temperature: float = 0.8  # temperature of those draws
@@ -265,6 +266,7 @@ def build(config: Config, *, key: jax.Array, control_dim: int = CONTROL_DIM) -> 
         residual_world=config.residual_world,
         world_joints=config.world_joints,
         absolute_foot_heights=config.absolute_foot_heights,
+        stance_hint=config.stance_hint,
         own_history=config.own_history,
         own_history_passes=config.own_history_passes,
         own_history_temperature=config.own_history_temperature,
@@ -275,13 +277,15 @@ def build(config: Config, *, key: jax.Array, control_dim: int = CONTROL_DIM) -> 
 
 def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None) -> MoGlow:
     """Data-dependent initialisation on one batch (pure: returns a new model): with
-    ``residual_world`` the standardiser's units first (``MoGlow.with_units``; the training
-    loop passes the run's ``standardizer``), then ActNorm."""
+    ``residual_world`` or ``stance_hint`` the standardiser's units first
+    (``MoGlow.with_units``; the training loop passes the run's ``standardizer``), then
+    ActNorm."""
     del key
-    if model.residual_world:
+    if model.residual_world or model.stance_hint:
         if standardizer is None:
             raise ValueError(
-                "a residual_world MoGlow needs the run's standardizer to initialise "
+                "a residual_world or stance_hint MoGlow needs the run's standardizer to "
+                "initialise "
                 "(initialize(model, batch, key=..., standardizer=dataset.standardizer))"
             )
         s = standardizer

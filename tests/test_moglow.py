@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import jax
@@ -555,6 +556,76 @@ def test_residual_world_needs_its_units_and_the_motion_features():
         _model().with_units(np.zeros(D), np.ones(D), np.zeros(C), np.ones(C))
     with pytest.raises(ValueError, match="positive"):
         _world_model().with_units(np.zeros(63), np.zeros(63), np.zeros(3), np.ones(3))
+
+
+def _hint_model(seed=0):
+    """A stance_hint MoGlow (residual) on the real feature sizes with non-trivial units."""
+    from motionflows.data.names import CONTROL_DIM, POSE_DIM
+
+    rng = np.random.default_rng(seed)
+    m = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
+               stance_hint=True, rngs=jax.random.key(seed))  # fmt: skip
+    m = perturbed(m, jax.random.key(seed + 100), scale=0.05)
+    return m.with_units(
+        rng.normal(0, 0.3, POSE_DIM), rng.uniform(0.05, 0.4, POSE_DIM),
+        np.array([0.04, 0.0, 0.0]), np.array([0.03, 0.01, 0.05]),
+    )  # fmt: skip
+
+
+def test_stance_hint_is_the_change_of_a_planted_foot_and_only_a_condition():
+    """The hint of a body standing still in the world is exactly its feet's change; the
+    model stays an exact bijection (jacfwd) whose sequence pass, frame steps and sampler
+    agree, and the hint changes the latents (the conditioner reads it)."""
+    from motionflows.data.features import carry_to_next_root
+    from motionflows.data.names import FOOT_JOINTS
+
+    model = _hint_model(seed=2)
+    _, _, (p_mean, p_std, c_mean, c_std) = _world_data(model)
+    t = 6
+    control_m = np.stack([np.full(t, 0.06), np.full(t, 0.01), np.full(t, 0.1)], -1)
+    frames = [np.asarray(p_mean, np.float64) + 0.1]
+    for i in range(1, t):
+        frames.append(carry_to_next_root(frames[-1], control_m[i - 1]))
+    pose = jnp.asarray(((np.stack(frames) - p_mean) / p_std)[None], jnp.float32)
+    control = jnp.asarray(((control_m - c_mean) / c_std)[None], jnp.float32)
+    targets, cond, previous = model.conditions(pose, control, scope="official")
+    assert cond.shape[-1] == model.cond_dim == TAU * 63 + (TAU + 1) * 3 + 12
+    is_foot = np.isin(np.arange(63) // 3, FOOT_JOINTS)
+    np.testing.assert_allclose(cond[..., -12:], (targets - previous)[..., is_foot], atol=1e-4)
+    assert np.abs(np.asarray(cond[..., -12:])).max() > 0.1  # the root moved them
+
+    pose, control, _ = _world_data(model, b=1, t=5)
+
+    def f(flat):
+        z = model.inverse_and_log_det(flat.reshape(1, 5, -1), context=control, scope="window")
+        return z[0].reshape(-1)
+
+    _, logabs = jnp.linalg.slogdet(jax.jacfwd(f)(pose.reshape(-1)))
+    z, ld = model.inverse_and_log_det(pose, context=control, scope="window")
+    np.testing.assert_allclose(ld[0], logabs, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(model.generate(z, control), pose, atol=1e-4)
+    targets, cond, _ = model.conditions(pose, control, scope="window")
+    carry = model.initial_carry(1)
+    for i in range(5):
+        z_t, _, carry = model._frame_to_latent(targets[:, i], cond[:, i], carry)
+        np.testing.assert_allclose(z_t, z[:, i], atol=1e-4)
+    blind = model.flow.inverse_and_log_det(
+        targets - jnp.pad(pose, ((0, 0), (1, 0), (0, 0)))[:, :-1],
+        context=cond.at[..., -12:].set(0.0),
+    )[0]
+    assert np.abs(np.asarray(blind - z)).max() > 1e-3
+
+
+def test_stance_hint_needs_the_motion_features_and_its_units():
+    import experiments.moglow as E
+
+    with pytest.raises(ValueError, match="stance_hint needs the motion features"):
+        MoGlow(D, C, stance_hint=True, rngs=jax.random.key(0))
+    model = E.build(dataclasses.replace(E.PRESETS["smoke"], tau=TAU, stance_hint=True),
+                    key=jax.random.key(0))  # fmt: skip
+    pose, control = jnp.zeros((2, 8, 63)), jnp.zeros((2, 8, 3))
+    with pytest.raises(ValueError, match="needs the run's standardizer"):
+        E.initialize(model, {"pose": pose, "control": control}, key=jax.random.key(1))
 
 
 def test_absolute_foot_heights_flow_the_heights_and_stay_exact():

@@ -102,6 +102,8 @@ _FEET_CHANNELS = np.isin(np.arange(POSE_DIM) // 3, FOOT_JOINTS)
 """(63,) bool: the x, y, z channels of the ankles and toes."""
 _FOOT_HEIGHT_CHANNELS = _FEET_CHANNELS & (np.arange(POSE_DIM) % 3 == 1)
 """(63,) bool: the heights (y) of the ankles and toes."""
+_FEET_INDEX = np.flatnonzero(_FEET_CHANNELS)
+"""(12,) int: the channels of ``_FEET_CHANNELS`` (the ``stance_hint`` channels, in order)."""
 
 
 # ----------------------------------------------------------------------------- conditions
@@ -260,6 +262,16 @@ class MoGlow(nnx.Module):
         by 0, still a shift by a function of the history: log-det 0), so the flow can put a
         planted foot's density at the floor instead of integrating its height from frame to
         frame (our option, an ablation; docs/readme/moglow_quality.md).
+      stance_hint: append to every condition cond_t where each ankle and toe would be at
+        frame t had it stood still in the world since t-1, relative to where it was:
+        carry(x_{t-1}) - x_{t-1} on their 12 channels (standardised; ``carry`` as in
+        ``residual_world``, by the control c_{t-1}), so a conditioner can place a planted
+        foot by passing one input through instead of computing the root's move. x_{t-1} is
+        the pose the ``residual`` change is taken from (never dropped; noisy in training
+        with ``history_noise``). A condition only: the log-determinant and the flowed
+        values are unchanged. Needs D = 63, C = 3 and the standardiser's statistics
+        (:meth:`with_units`). Our option, an ablation of the stance creep
+        (docs/readme/moglow_quality.md); no preset uses it.
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -315,6 +327,7 @@ class MoGlow(nnx.Module):
         residual_world: bool = False,
         world_joints: str = "all",
         absolute_foot_heights: bool = False,
+        stance_hint: bool = False,
         own_history: float = 0.0,
         own_history_passes: int = 1,
         own_history_temperature: float = 0.8,
@@ -374,6 +387,11 @@ class MoGlow(nnx.Module):
                 f"residual_world needs the motion features (pose_dim={POSE_DIM} joint "
                 f"positions, control_dim={CONTROL_DIM} root moves), got {pose_dim}, {control_dim}"
             )
+        if stance_hint and (int(pose_dim), int(control_dim)) != (POSE_DIM, CONTROL_DIM):
+            raise ValueError(
+                f"stance_hint needs the motion features (pose_dim={POSE_DIM} joint positions, "
+                f"control_dim={CONTROL_DIM} root moves), got {pose_dim}, {control_dim}"
+            )
         if compute_dtype is not None:
             compute_dtype = jnp.dtype(compute_dtype).name
         self.pose_dim = int(pose_dim)
@@ -394,11 +412,12 @@ class MoGlow(nnx.Module):
         self.residual_world = bool(residual_world)
         self.world_joints = world_joints
         self.absolute_foot_heights = bool(absolute_foot_heights)
+        self.stance_hint = bool(stance_hint)
         self.own_history = float(own_history)
         self.own_history_passes = int(own_history_passes)
         self.own_history_temperature = float(own_history_temperature)
         self.own_history_target = own_history_target
-        if self.residual_world:  # [pose mean, pose std, control mean, control std]
+        if self.residual_world or self.stance_hint:  # [pose mean, pose std, ctrl mean, std]
             self.units = Fixed(
                 jnp.concatenate(
                     [jnp.zeros(pose_dim), jnp.ones(pose_dim), jnp.zeros(control_dim),
@@ -406,6 +425,8 @@ class MoGlow(nnx.Module):
                 ).astype(jnp.float32)
             )  # fmt: skip
         self.cond_dim = self.tau * self.pose_dim + (self.tau + 1) * self.control_dim
+        if self.stance_hint:
+            self.cond_dim += _FEET_INDEX.size
         if not isinstance(rngs, nnx.Rngs):
             rngs = nnx.Rngs(rngs)
         factory = _step_factory(
@@ -422,10 +443,11 @@ class MoGlow(nnx.Module):
     # -- the residual's previous pose
 
     def with_units(self, pose_mean, pose_std, control_mean, control_std) -> MoGlow:
-        """A copy whose ``residual_world`` carry works in these units: the standardiser's
-        per-channel means and stds of poses (D,) (metres) and controls (C,). Pure."""
-        if not self.residual_world:
-            raise ValueError("MoGlow.with_units is only for residual_world models")
+        """A copy whose ``residual_world`` and ``stance_hint`` carry works in these units: the
+        standardiser's per-channel means and stds of poses (D,) (metres) and controls (C,).
+        Pure."""
+        if not (self.residual_world or self.stance_hint):
+            raise ValueError("MoGlow.with_units is only for residual_world or stance_hint models")
         parts = [np.asarray(a, np.float32).reshape(-1) for a in
                  (pose_mean, pose_std, control_mean, control_std)]  # fmt: skip
         sizes = [self.pose_dim, self.pose_dim, self.control_dim, self.control_dim]
@@ -437,17 +459,20 @@ class MoGlow(nnx.Module):
         model.units[...] = jnp.asarray(np.concatenate(parts))
         return model
 
-    def _carry_previous(self, previous: Array, cond: Array) -> Array:
-        """``residual_world``: x_{t-1} (..., D) carried into frame t's root frame by c_{t-1},
-        read from cond (..., cond_dim) (the controls there are never dropped); standardised
-        in and out."""
+    def _carried(self, previous: Array, cond: Array) -> Array:
+        """x_{t-1} (..., D) carried into frame t's root frame by c_{t-1}, read from cond
+        (..., cond_dim) (the controls there are never dropped); standardised in and out."""
         d, c, tau = self.pose_dim, self.control_dim, self.tau
         units = jax.lax.stop_gradient(self.units[...])
         p_mean, p_std = units[:d], units[d : 2 * d]
         c_mean, c_std = units[2 * d : 2 * d + c], units[2 * d + c :]
         start = tau * d + (tau - 1) * c  # c_{t-1}: the last history control
         control = c_mean + c_std * cond[..., start : start + c]
-        moved = (carry_to_next_root(p_mean + p_std * previous, control) - p_mean) / p_std
+        return (carry_to_next_root(p_mean + p_std * previous, control) - p_mean) / p_std
+
+    def _carry_previous(self, previous: Array, cond: Array) -> Array:
+        """``residual_world``: x_{t-1} carried (:meth:`_carried`), on the ``world_joints``."""
+        moved = self._carried(previous, cond)
         if self.world_joints == "feet":
             return jnp.where(_FEET_CHANNELS, moved, previous)
         return moved
@@ -460,6 +485,34 @@ class MoGlow(nnx.Module):
         if self.absolute_foot_heights:
             previous = jnp.where(_FOOT_HEIGHT_CHANNELS, 0.0, previous)
         return previous
+
+    def _hinted(self, cond: Array, previous: Array) -> Array:
+        """cond (..., cond_dim without the hint), with ``stance_hint`` followed by
+        carry(x_{t-1}) - x_{t-1} on the feet's 12 channels; previous = x_{t-1} (..., D)."""
+        if not self.stance_hint:
+            return cond
+        hint = (self._carried(previous, cond) - previous)[..., _FEET_INDEX]
+        return jnp.concatenate([cond, hint], axis=-1)
+
+    def conditions(
+        self,
+        pose: Array,
+        control: Array,
+        *,
+        scope: str = "official",
+        history_pose: Array | None = None,
+        **options,
+    ) -> tuple[Array, Array, Array]:
+        """(targets (B, T', D), cond (B, T', cond_dim), previous (B, T', D)) of windows:
+        :func:`build_conditions` (``options``: dropout, key, keep_last), the pose before
+        each target frame (:func:`previous_frames` of the histories' poses) and, with
+        ``stance_hint``, the hint appended to cond."""
+        history = pose if history_pose is None else history_pose
+        targets, cond = build_conditions(
+            pose, control, self.tau, scope=scope, history_pose=history, **options
+        )
+        previous = previous_frames(history, self.tau, scope)
+        return targets, self._hinted(cond, previous), previous
 
     def _difference(self) -> Difference:
         """The ``residual`` map: u_t = x_t - previous(x_{t-1}) (:meth:`_previous`)."""
@@ -540,10 +593,9 @@ class MoGlow(nnx.Module):
                 raise ValueError("history_noise > 0 needs a jax.random key")
             noise_key = jax.random.fold_in(key, 1)  # `key` itself draws the dropout mask
             history = history + history_noise * jax.random.normal(noise_key, pose.shape)
-        targets, cond = build_conditions(
+        targets, cond, previous = self.conditions(
             pose,
             context,
-            self.tau,
             scope=scope,
             dropout=dropout,
             key=key,
@@ -554,7 +606,6 @@ class MoGlow(nnx.Module):
             targets = targets + previous_frames(drawn - pose, self.tau, scope)
         if self.residual:  # the changes x_t - x~_{t-1} of the target frames (log-det 0),
             # by the sampler's own Difference frame step, every target frame at once
-            previous = previous_frames(history, self.tau, scope)
             targets = self._difference().inverse_step(targets, context_t=cond, carry=previous)[0]
         return self.flow.inverse_and_log_det(targets, context=cond)
 
@@ -569,14 +620,14 @@ class MoGlow(nnx.Module):
         mine = jax.random.bernoulli(mask_key, rate, (*pose.shape[:-2], pose.shape[-2] - offset, 1))
         history = pose
         for draw_key in draw_keys:  # a few passes (static), not frames or flow steps
-            targets, cond = build_conditions(pose, control, self.tau, scope=scope,
-                                             history_pose=history)  # fmt: skip
+            targets, cond, previous = self.conditions(
+                pose, control, scope=scope, history_pose=history
+            )
             z = self.base_density().sample(
                 draw_key, targets.shape[:-1], temperature=self.own_history_temperature
             )
             drawn = self.flow.forward(z, context=cond)
             if self.residual:  # x^_t = u_t + previous(x_{t-1} of this pass's history)
-                previous = previous_frames(history, self.tau, scope)
                 drawn = self._difference().forward_step(drawn, context_t=cond, carry=previous)[0]
             drawn = jax.lax.stop_gradient(drawn)
             history = pose.at[..., offset:, :].set(jnp.where(mine, drawn, pose[..., offset:, :]))
@@ -702,6 +753,7 @@ class MoGlow(nnx.Module):
             ],
             axis=-1,
         )
+        cond_t = self._hinted(cond_t, state.poses[:, -1])
         x_t, _, carry = self.frame_flow().forward_step(z_t, context_t=cond_t, carry=state.carry)
         new = StreamState(
             carry=carry,
