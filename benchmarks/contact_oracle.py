@@ -19,9 +19,10 @@ contact channels into ``OUT/run`` (resumed if it is there), then scores it and e
 ``--baseline`` run (the same preset without contacts: the bench's own runs) as the bench
 scores: 256 complete windows of the unseen performer's takes (``pick(test, 256, seed=2)``),
 one temperature for all (0.8), latents from ``fold_in(key(0), 20)``, diversity from 16
-samples of the first control, ground truth beside. The likelihood of the oracle is
-conditioned on the true contacts, so it is not comparable with the baselines' (reported
-apart). Writes ``OUT/contact_oracle.json``; a table goes to stdout.
+samples of the first control, ground truth beside. Motion only: each run's validation NLL
+is in its ``metrics.jsonl`` (the oracle's conditioned on the true contacts, so a measure
+of what they tell the model, not a likelihood comparable with the baselines'). Writes
+``OUT/contact_oracle.json``; a table goes to stdout.
 """
 
 from __future__ import annotations
@@ -135,7 +136,8 @@ def oracle_experiment(standardizer) -> types.ModuleType:
 
 def score(run_dir: Path, test, idx: np.ndarray, fps: float, *, temperature: float, sizes):
     """Motion metrics of a run's best checkpoint on test windows ``idx`` (metres), sampled
-    as the bench samples, and its test NLL (official scope, nats/frame in metres)."""
+    as the bench samples, with :func:`told_contact_steps`; the oracle (control_dim 5) gets
+    the true contacts of each window."""
     exp, config, model, saved = restore_run(run_dir, checkpoint="best")
     st = load_standardizer(run_dir)
     control = st.normalize_control(np.asarray(test.control, np.float32)[idx])
