@@ -43,14 +43,8 @@ from motionflows import bench
 from motionflows.bench.benchmark import jsonable
 from motionflows.bench.budgets import BUDGET_SIZES, bench_config, parse_data_spec
 from motionflows.config import apply_overrides
-from motionflows.data.names import CONTROL_DIM, FOOT_JOINTS
-from motionflows.evaluation.motion import (
-    FLOOR_CONTACT_M,
-    FLOOR_MAX_OFFSET_M,
-    FLOOR_PERCENTILE,
-    foot_contacts,
-    to_global,
-)
+from motionflows.data.names import CONTROL_DIM
+from motionflows.evaluation.motion import foot_contacts, foot_speeds
 from motionflows.run import load_standardizer, restore_run
 from motionflows.training import train
 from motionflows.windows import pick
@@ -64,21 +58,11 @@ METRICS = (
 
 
 def contact_signs(pose_m: jax.Array) -> jax.Array:
-    """Foot contacts of windows as control channels: pose (..., T, 63) in metres ->
-    (..., T, 2) float32, +1 where the foot (left, right) is in contact, -1 where not.
-
-    The ``"floor"`` rule of :func:`motionflows.evaluation.motion.foot_contacts` in JAX: a
-    foot's height is its lower joint's (ankle, toe); the window's floor is the 5th
-    percentile of both feet's heights over its frames, clipped to +-5 cm; contact below
-    floor + 1.5 cm."""
-    y = pose_m[..., 1::3]  # (..., T, 21) joint heights
-    a = FOOT_JOINTS
-    heights = jnp.stack([jnp.minimum(y[..., a[0]], y[..., a[1]]),
-                         jnp.minimum(y[..., a[2]], y[..., a[3]])], axis=-1)  # fmt: skip
-    flat = heights.reshape(*heights.shape[:-2], -1)
-    floor = jnp.clip(jnp.percentile(flat, FLOOR_PERCENTILE, axis=-1),
-                     -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M)  # fmt: skip
-    return jnp.where(heights < floor[..., None, None] + FLOOR_CONTACT_M, 1.0, -1.0)
+    """Foot contacts of windows as control channels: pose (..., T, 63) in metres (a jax
+    array) -> (..., T, 2), +1 where the foot (left, right) is in contact by the ``"floor"``
+    rule of :func:`motionflows.evaluation.motion.foot_contacts` (the metrics' rule), -1
+    where not."""
+    return jnp.where(foot_contacts(pose_m), 1.0, -1.0)
 
 
 def told_contact_steps(samples_m, control_m, truth_m, fps: float) -> dict:
@@ -89,13 +73,7 @@ def told_contact_steps(samples_m, control_m, truth_m, fps: float) -> dict:
     *ground truth's* foot is in contact at both frames: 0 for a model that stands every
     foot the data stands, whatever its feet's heights."""
     own, truth = foot_contacts(samples_m), foot_contacts(truth_m)
-    w = to_global(np.asarray(samples_m, np.float64), np.asarray(control_m, np.float64))
-    w = w.reshape(*w.shape[:-1], 21, 3)
-    a = FOOT_JOINTS
-    centre = np.stack([w[..., a[0], :] + w[..., a[1], :], w[..., a[2], :] + w[..., a[3], :]],
-                      axis=-2) / 2.0  # fmt: skip
-    step = np.diff(centre, axis=-3)
-    speed = np.hypot(step[..., 0], step[..., 2]) * float(fps)
+    speed = foot_speeds(samples_m, control_m, fps=fps)
     stands = truth[..., :-1, :] & truth[..., 1:, :]
     return {"contact_agreement": float(np.mean(own == truth)),
             "told_stance_speed": float(speed[stands].mean())}  # fmt: skip

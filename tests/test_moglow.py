@@ -451,14 +451,15 @@ def test_inference_copy_stores_conditioner_weights_in_bfloat16(conditioner):
     np.testing.assert_allclose(x0, approx[:, 0], rtol=1e-5, atol=1e-5)
 
 
-def _world_model(seed=0, world_joints="all"):
-    """A residual_world MoGlow on the real feature sizes (63, 3) with non-trivial units."""
+def _world_model(seed=0, world_joints="all", **options):
+    """A residual MoGlow on the real feature sizes (63, 3) with non-trivial units:
+    ``residual_world`` unless ``options`` say otherwise (e.g. ``stance_hint=True``)."""
     from motionflows.data.names import CONTROL_DIM, POSE_DIM
 
     rng = np.random.default_rng(seed)
+    options = options or {"residual_world": True, "world_joints": world_joints}
     m = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
-               residual_world=True, world_joints=world_joints,
-               rngs=jax.random.key(seed))  # fmt: skip
+               rngs=jax.random.key(seed), **options)  # fmt: skip
     m = perturbed(m, jax.random.key(seed + 100), scale=0.05)
     return m.with_units(
         rng.normal(0, 0.3, POSE_DIM), rng.uniform(0.05, 0.4, POSE_DIM),
@@ -558,20 +559,6 @@ def test_residual_world_needs_its_units_and_the_motion_features():
         _world_model().with_units(np.zeros(63), np.zeros(63), np.zeros(3), np.ones(3))
 
 
-def _hint_model(seed=0):
-    """A stance_hint MoGlow (residual) on the real feature sizes with non-trivial units."""
-    from motionflows.data.names import CONTROL_DIM, POSE_DIM
-
-    rng = np.random.default_rng(seed)
-    m = MoGlow(POSE_DIM, CONTROL_DIM, tau=TAU, K=K, hidden=H, num_layers=1, residual=True,
-               stance_hint=True, rngs=jax.random.key(seed))  # fmt: skip
-    m = perturbed(m, jax.random.key(seed + 100), scale=0.05)
-    return m.with_units(
-        rng.normal(0, 0.3, POSE_DIM), rng.uniform(0.05, 0.4, POSE_DIM),
-        np.array([0.04, 0.0, 0.0]), np.array([0.03, 0.01, 0.05]),
-    )  # fmt: skip
-
-
 def test_stance_hint_is_the_change_of_a_planted_foot_and_only_a_condition():
     """The hint of a body standing still in the world is exactly its feet's change; the
     model stays an exact bijection (jacfwd) whose sequence pass, frame steps and sampler
@@ -579,7 +566,7 @@ def test_stance_hint_is_the_change_of_a_planted_foot_and_only_a_condition():
     from motionflows.data.features import carry_to_next_root
     from motionflows.data.names import FOOT_JOINTS
 
-    model = _hint_model(seed=2)
+    model = _world_model(seed=2, stance_hint=True)
     _, _, (p_mean, p_std, c_mean, c_std) = _world_data(model)
     t = 6
     control_m = np.stack([np.full(t, 0.06), np.full(t, 0.01), np.full(t, 0.1)], -1)

@@ -186,8 +186,9 @@ the threshold of the foot-skating ratio of Karunratanakul et al. 2023) is a skat
 
 def foot_heights(joints: np.ndarray) -> np.ndarray:
     """(..., 2): the height of each foot's lowest joint (ankle or toe), left then right, of
-    joints (..., 21, 3) in metres (sequences: (..., T, 21, 3) -> (..., T, 2))."""
-    return np.stack([np.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
+    joints (..., 21, 3) in metres (sequences: (..., T, 21, 3) -> (..., T, 2)); numpy or jax."""
+    xp = _xp(joints)
+    return xp.stack([xp.minimum(joints[..., a, 1], joints[..., b, 1]) for a, b in _FEET], axis=-1)
 
 
 _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])
@@ -196,10 +197,11 @@ _FEET = (FOOT_JOINTS[:2], FOOT_JOINTS[2:])
 def contact_floor(heights: np.ndarray) -> np.ndarray:
     """The ``"floor"`` rule's floor (...,) of feet heights (..., T, 2) in metres: the
     ``FLOOR_PERCENTILE`` of both feet's heights over the frames, clipped to
-    +-``FLOOR_MAX_OFFSET_M``."""
+    +-``FLOOR_MAX_OFFSET_M``. numpy or jax."""
+    xp = _xp(heights)
     flat = heights.reshape(heights.shape[:-2] + (-1,))
-    return np.clip(
-        np.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
+    return xp.clip(
+        xp.percentile(flat, FLOOR_PERCENTILE, axis=-1), -FLOOR_MAX_OFFSET_M, FLOOR_MAX_OFFSET_M
     )
 
 
@@ -221,8 +223,12 @@ def foot_contacts(
       rule of earlier reports (on the same windows: walking 0.58 m/s, running 0.94 m/s).
 
     Speed is never part of the test, so a foot dragged along the ground counts as sliding.
+    numpy in (float64 inside), numpy out; a jax array in (any dtype, jittable), jax out.
     """
-    j = _joints(pose)
+    if _xp(pose) is np:
+        j = _joints(pose)
+    else:
+        j = pose.reshape(pose.shape[:-1] + (NUM_JOINTS, 3))
     heights = foot_heights(j)
     if rule == "floor":
         h = FLOOR_CONTACT_M if contact_height is None else float(contact_height)
@@ -233,17 +239,23 @@ def foot_contacts(
     raise ValueError(f"unknown contact rule {rule!r}; valid: {', '.join(CONTACT_RULES)}")
 
 
-def _contact_steps(pose, control, fps, rule, contact_height):
-    """(speed, contact) of each foot step t -> t+1, both (..., T-1, 2): the horizontal world
-    speed (m/s) of the foot centre (mean of ankle and toe) and contact at both t and t+1."""
-    pose = np.asarray(pose, dtype=np.float64)
-    w = _joints(to_global(pose, np.asarray(control, np.float64)))
-    contact = foot_contacts(pose, rule=rule, contact_height=contact_height)
-    both = contact[..., :-1, :] & contact[..., 1:, :]
+def foot_speeds(pose: Any, control: Any, *, fps: float) -> np.ndarray:
+    """(..., T-1, 2): the horizontal (x, z) world speed (m/s) of each foot's centre (the
+    mean of its ankle and toe), left then right, over each step t -> t+1 of pose
+    (..., T, 63) with control (..., T, 3)."""
+    w = _joints(to_global(np.asarray(pose, np.float64), np.asarray(control, np.float64)))
     centre = np.stack([0.5 * (w[..., a, :] + w[..., b, :]) for a, b in _FEET], axis=-2)
     step = np.diff(centre, axis=-3)
-    speed = np.hypot(step[..., 0], step[..., 2]) * float(fps)
-    return speed, both
+    return np.hypot(step[..., 0], step[..., 2]) * float(fps)
+
+
+def _contact_steps(pose, control, fps, rule, contact_height):
+    """(speed, contact) of each foot step t -> t+1, both (..., T-1, 2): the foot centre's
+    :func:`foot_speeds` and contact at both t and t+1."""
+    pose = np.asarray(pose, dtype=np.float64)
+    contact = foot_contacts(pose, rule=rule, contact_height=contact_height)
+    both = contact[..., :-1, :] & contact[..., 1:, :]
+    return foot_speeds(pose, control, fps=fps), both
 
 
 def foot_sliding(
