@@ -68,6 +68,7 @@ class Config:
     world_joints: str = "all"  # with residual_world: "all" joints or the "feet" only
     absolute_foot_heights: bool = False  # with residual: the feet's heights flowed, not changed
     stance_hint: bool = False  # condition on where a planted foot would be (an ablation)
+    cond_embedding: int = 0  # 0, or the width of one linear map of cond all K steps read
     own_history: float = 0.0  # P(a history frame is the model's own draw) in training
     own_history_passes: int = 1  # draws from drawn histories: up to this many frames deep
     own_history_temperature: float = 0.8  # temperature of those draws
@@ -267,6 +268,7 @@ def build(config: Config, *, key: jax.Array, control_dim: int = CONTROL_DIM) -> 
         world_joints=config.world_joints,
         absolute_foot_heights=config.absolute_foot_heights,
         stance_hint=config.stance_hint,
+        cond_embedding=config.cond_embedding,
         own_history=config.own_history,
         own_history_passes=config.own_history_passes,
         own_history_temperature=config.own_history_temperature,

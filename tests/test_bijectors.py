@@ -79,6 +79,16 @@ class ShiftConv(nnx.Module):
         return jnp.tanh(h) @ self.out[...], x_t
 
 
+class ContextNet(nnx.Module):
+    """A per-frame nonlinear map of the context, (..., C) -> (..., C), for ``MapContext``."""
+
+    def __init__(self, c, *, rngs):
+        self.w = nnx.Param(jax.random.normal(rngs.params(), (c, c)))
+
+    def __call__(self, context):
+        return jnp.tanh(context @ self.w[...])
+
+
 def _glow_step(rngs, *, context_features=C):
     """data -> latent: ActNorm, InvertibleLinear, AffineCoupling (per-frame MLP)."""
     cond = coupling_mlp(D, context_features=context_features, hidden=8, rngs=rngs)
@@ -126,6 +136,10 @@ REGISTRY: dict[str, Case] = {
         uses_context=True,
     ),
     "chain": Case(_glow_step, uses_context=True),
+    "map_context_scan_sequence": Case(
+        lambda r: bj.MapContext(bj.Scan(_sequence_step, K_STEPS, rngs=r), ContextNet(C, rngs=r)),
+        uses_context=True,
+    ),
     "inverse_of_chain": Case(lambda r: bj.Inverse(_glow_step(r)), uses_context=True),
     "scan": Case(lambda r: bj.Scan(_glow_step, K_STEPS, rngs=r), uses_context=True),
     "scan_sequence": Case(lambda r: bj.Scan(_sequence_step, K_STEPS, rngs=r), uses_context=True),
@@ -301,6 +315,23 @@ def test_context_changes_output(name):
     r = report(name)
     assert float(jnp.max(jnp.abs(r["inv_c2"][0] - r["inv"][0]))) > 1e-3
     assert float(jnp.max(jnp.abs(r["fwd_c2"][0] - r["fwd_of_inv"][0]))) > 1e-3
+
+
+def test_map_context_is_the_bijector_given_the_mapped_context():
+    """Every map and frame step of MapContext(b, net) is b's on net(context)."""
+    wrapped = built("map_context_scan_sequence")
+    inner, net = wrapped.bijector, wrapped.net
+    x, c = data("map_context_scan_sequence", (2,))
+    for name in ("inverse_and_log_det", "forward_and_log_det"):
+        got = getattr(wrapped, name)(x, context=c)
+        close(got[0], getattr(inner, name)(x, context=net(c))[0], 1e-6)
+        close(got[1], getattr(inner, name)(x, context=net(c))[1], 1e-6)
+    carry = wrapped.initial_carry((2,))
+    for name in ("inverse_step", "forward_step"):
+        got = getattr(wrapped, name)(x[:, 0], context_t=c[:, 0], carry=carry)
+        want = getattr(inner, name)(x[:, 0], context_t=net(c[:, 0]), carry=carry)
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+            close(a, b, 1e-6)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from motionflows.bijectors import initialize_from_data
+from motionflows.bijectors import coupling_sizes, initialize_from_data
 from motionflows.models.moglow import MoGlow, build_conditions
 from tests.params import perturbed
 
@@ -39,11 +39,12 @@ def _data(b=3, t=9, seed=1):
 
 
 @pytest.mark.parametrize(
-    ("conditioner", "residual"), [("lstm", False), ("ff", False), ("lstm", True)]
+    ("conditioner", "residual", "embedding"),
+    [("lstm", False, 0), ("ff", False, 0), ("lstm", True, 0), ("lstm", True, 4)],
 )
-def test_sequence_pass_equals_frame_by_frame(conditioner, residual):
+def test_sequence_pass_equals_frame_by_frame(conditioner, residual, embedding):
     """Training/scoring (sequence), per-frame scoring and the sampler run the same bijectors."""
-    model = _model(conditioner, layers=2, residual=residual)
+    model = _model(conditioner, layers=2, residual=residual, cond_embedding=embedding)
     pose, control = _data()
     z_seq, ld_seq = jax.jit(lambda m, x, c: m.inverse_and_log_det(x, context=c, scope="window"))(
         model, pose, control
@@ -601,6 +602,37 @@ def test_stance_hint_is_the_change_of_a_planted_foot_and_only_a_condition():
         context=cond.at[..., -12:].set(0.0),
     )[0]
     assert np.abs(np.asarray(blind - z)).max() > 1e-3
+
+
+def test_cond_embedding_is_one_linear_map_all_steps_read_and_only_a_condition():
+    """With ``cond_embedding`` = E every coupling's conditioner reads e_t = cond_t W (E
+    values): the latents are the plain flow's given embed(cond) by hand, the log-det is
+    exact (jacfwd; the embedding is not part of the event), and the embedding matters."""
+    model = _model(seed=5, residual=True, cond_embedding=4)
+    assert model.embed.w_embed.shape == (model.cond_dim, 4)
+    lstm = model.flow.steps.bijectors[0].conditioner.lstm.layers[0]
+    assert lstm.w_ih.shape[-2] == coupling_sizes(D)[0] + 4  # [x_a, e_t], not [x_a, cond_t]
+    pose, control = _data(b=1, t=6, seed=6)
+    z, ld = model.inverse_and_log_det(pose, context=control, scope="window")
+    targets, cond, previous = model.conditions(pose, control, scope="window")
+    by_hand, ld_hand = model.flow.inverse_and_log_det(
+        targets - previous, context=model.embed(cond)
+    )
+    np.testing.assert_allclose(z, by_hand, atol=1e-6)
+    np.testing.assert_allclose(ld, ld_hand, rtol=1e-6)
+
+    def f(flat):
+        x = flat.reshape(pose.shape)
+        return model.inverse_and_log_det(x, context=control, scope="window")[0].reshape(-1)
+
+    _, logabs = jnp.linalg.slogdet(jax.jacfwd(f)(pose.reshape(-1)))
+    np.testing.assert_allclose(ld[0], logabs, rtol=1e-4, atol=1e-3)
+    other = nnx.clone(model)
+    other.embed.w_embed.set_value(other.embed.w_embed[...] * 2.0)
+    moved = other.inverse_and_log_det(pose, context=control, scope="window")[0]
+    assert np.abs(np.asarray(moved - z)).max() > 1e-3
+    with pytest.raises(ValueError, match="cond_embedding must be 0"):
+        MoGlow(D, C, cond_embedding=-1, rngs=jax.random.key(0))
 
 
 def test_stance_hint_needs_the_motion_features_and_its_units():

@@ -1,4 +1,5 @@
-"""The bijector interface and its combinators: ``Bijector``, ``Chain``, ``Inverse``, ``Scan``.
+"""The bijector interface and its combinators: ``Bijector``, ``Chain``, ``Inverse``,
+``MapContext``, ``Scan``.
 
 Direction (as in distrax, TFP, flowjax and the paper's x = f(z)):
 
@@ -49,6 +50,7 @@ __all__ = [
     "Chain",
     "Fixed",
     "Inverse",
+    "MapContext",
     "Scan",
     "check_event",
     "check_frame",
@@ -342,6 +344,39 @@ class Inverse(Bijector):
 
     def inverse_step(self, y_t, *, context_t=None, carry=None):
         return self.bijector.forward_step(y_t, context_t=context_t, carry=carry)
+
+
+class MapContext(Bijector):
+    """A bijector that reads ``net(context)`` instead of ``context``: every map and frame
+    step of ``MapContext(b, net)`` is ``b``'s with the context (..., T, C) or frame
+    context_t (..., C) first mapped by ``net`` (a per-frame module, (..., C) -> (..., E)).
+
+    The event and log-dets are ``b``'s (the context is not part of the event); so is the
+    carry. A network shared by several bijectors' contexts runs once, not once per layer:
+    ``MapContext(Scan(...), net)`` gives all K steps of a flow the same features net(c).
+    """
+
+    def __init__(self, bijector: Bijector, net: Callable[[Array], Array]):
+        self.bijector = bijector
+        self.net = net
+
+    def _mapped(self, context):
+        return None if context is None else self.net(context)
+
+    def forward_and_log_det(self, x, *, context=None):
+        return self.bijector.forward_and_log_det(x, context=self._mapped(context))
+
+    def inverse_and_log_det(self, y, *, context=None):
+        return self.bijector.inverse_and_log_det(y, context=self._mapped(context))
+
+    def initial_carry(self, batch_shape=()):
+        return self.bijector.initial_carry(batch_shape)
+
+    def forward_step(self, x_t, *, context_t=None, carry=None):
+        return self.bijector.forward_step(x_t, context_t=self._mapped(context_t), carry=carry)
+
+    def inverse_step(self, y_t, *, context_t=None, carry=None):
+        return self.bijector.inverse_step(y_t, context_t=self._mapped(context_t), carry=carry)
 
 
 def _as_key(rngs: Any, key: Any = None) -> Array:

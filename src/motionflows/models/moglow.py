@@ -69,6 +69,7 @@ from motionflows.bijectors import (
     Difference,
     Fixed,
     InvertibleLinear,
+    MapContext,
     Scan,
     coupling_sizes,
 )
@@ -77,7 +78,11 @@ from motionflows.data.names import CONTROL_DIM, FOOT_JOINTS, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, StudentT
 from motionflows.models.validation import check_input, check_temperature
-from motionflows.nets.moglow_conditioners import FeedForwardConditioner, LSTMConditioner
+from motionflows.nets.moglow_conditioners import (
+    CondEmbedding,
+    FeedForwardConditioner,
+    LSTMConditioner,
+)
 
 Array = jax.Array
 
@@ -272,6 +277,15 @@ class MoGlow(nnx.Module):
         values are unchanged. Needs D = 63, C = 3 and the standardiser's statistics
         (:meth:`with_units`). Our option, an ablation of the stance creep
         (docs/readme/moglow_quality.md); no preset uses it.
+      cond_embedding: 0 (the official model: every coupling's conditioner reads cond_t) or
+        a width E: a learned linear map e_t = cond_t W (no bias, :class:`CondEmbedding`)
+        runs once per frame and all K conditioners read e_t (E values) instead of cond_t.
+        That constrains each coupling's weights on the condition to rank E in a row space
+        the K steps share, and replaces K (cond x 4H) products per frame by one (cond x E)
+        and K (E x 4H): with tau = 5 (cond 333), E = 64 and a 128-unit LSTM, the
+        conditioners' products per frame fall by about half. A condition only: log-dets
+        and the residual's previous pose are unchanged (the ``Difference`` reads cond_t).
+        Our option (docs/readme/cpu_budget.md).
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -328,6 +342,7 @@ class MoGlow(nnx.Module):
         world_joints: str = "all",
         absolute_foot_heights: bool = False,
         stance_hint: bool = False,
+        cond_embedding: int = 0,
         own_history: float = 0.0,
         own_history_passes: int = 1,
         own_history_temperature: float = 0.8,
@@ -360,6 +375,10 @@ class MoGlow(nnx.Module):
             raise ValueError(
                 f"MoGlow needs tau >= 1, K >= 1, pose_dim >= 2; got tau={tau}, "
                 f"K={K}, pose_dim={pose_dim}"
+            )
+        if int(cond_embedding) < 0:
+            raise ValueError(
+                f"cond_embedding must be 0 (off) or the embedding's width, got {cond_embedding}"
             )
         if residual_world and not residual:
             raise ValueError("residual_world=True needs residual=True (it changes what is flowed)")
@@ -413,6 +432,7 @@ class MoGlow(nnx.Module):
         self.world_joints = world_joints
         self.absolute_foot_heights = bool(absolute_foot_heights)
         self.stance_hint = bool(stance_hint)
+        self.cond_embedding = int(cond_embedding)
         self.own_history = float(own_history)
         self.own_history_passes = int(own_history_passes)
         self.own_history_temperature = float(own_history_temperature)
@@ -431,7 +451,7 @@ class MoGlow(nnx.Module):
             rngs = nnx.Rngs(rngs)
         factory = _step_factory(
             self.pose_dim,
-            self.cond_dim,
+            self.cond_embedding or self.cond_dim,
             self.hidden,
             self.num_layers,
             conditioner,
@@ -439,6 +459,12 @@ class MoGlow(nnx.Module):
             self.eps,
         )
         self.flow = Scan(factory, self.K, rngs=rngs)
+        # drawn after the steps, so that the steps' initial parameters do not depend on it
+        self.embed = (
+            CondEmbedding(self.cond_dim, self.cond_embedding, compute_dtype=compute_dtype, rngs=rngs)
+            if self.cond_embedding
+            else None
+        )
 
     # -- the residual's previous pose
 
@@ -607,7 +633,7 @@ class MoGlow(nnx.Module):
         if self.residual:  # the changes x_t - x~_{t-1} of the target frames (log-det 0),
             # by the sampler's own Difference frame step, every target frame at once
             targets = self._difference().inverse_step(targets, context_t=cond, carry=previous)[0]
-        return self.flow.inverse_and_log_det(targets, context=cond)
+        return self._steps().inverse_and_log_det(targets, context=cond)
 
     def _own_history(self, pose: Array, control: Array, scope: str, key: Array, rate: float):
         """The histories of parallel scheduled sampling (``own_history``): pose (B, T, D)
@@ -626,7 +652,7 @@ class MoGlow(nnx.Module):
             z = self.base_density().sample(
                 draw_key, targets.shape[:-1], temperature=self.own_history_temperature
             )
-            drawn = self.flow.forward(z, context=cond)
+            drawn = self._steps().forward(z, context=cond)
             if self.residual:  # x^_t = u_t + previous(x_{t-1} of this pass's history)
                 drawn = self._difference().forward_step(drawn, context_t=cond, carry=previous)[0]
             drawn = jax.lax.stop_gradient(drawn)
@@ -673,13 +699,19 @@ class MoGlow(nnx.Module):
 
     # -- frame-by-frame maps (the bijectors' frame steps)
 
+    def _steps(self) -> Bijector:
+        """The K flow steps given cond_t: ``flow``, reading e_t = ``embed``(cond_t) with
+        ``cond_embedding``."""
+        return self.flow if self.embed is None else MapContext(self.flow, self.embed)
+
     def frame_flow(self) -> Bijector:
-        """The per-frame map latent z_t -> pose x_t given cond_t: the K steps (``flow``),
-        then, with ``residual``, a :class:`~motionflows.bijectors.Difference` (x_t = u_t +
-        x_{t-1}). Its ``forward_step`` samples a frame, its ``inverse_step`` scores one."""
+        """The per-frame map latent z_t -> pose x_t given cond_t: the K steps (``flow``;
+        with ``cond_embedding`` they read ``embed``(cond_t)), then, with ``residual``, a
+        :class:`~motionflows.bijectors.Difference` (x_t = u_t + x_{t-1}). Its
+        ``forward_step`` samples a frame, its ``inverse_step`` scores one."""
         if self.residual:
-            return Chain([self.flow, self._difference()])
-        return self.flow
+            return Chain([self._steps(), self._difference()])
+        return self._steps()
 
     def initial_carry(self, batch: int):
         """The carry of :meth:`frame_flow` before frame 0 for ``batch`` sequences: zero LSTM

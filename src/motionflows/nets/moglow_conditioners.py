@@ -8,6 +8,9 @@ parameters h (..., T, out) frame by frame, causally:
   the LSTM carrying its state along time;
 * :class:`FeedForwardConditioner` (the Markov ablation): ``h_t = MLP([x_a_t, cond_t])``.
 
+:class:`CondEmbedding` (MoGlow's ``cond_embedding``, not in the official model) maps cond_t
+to fewer features once per frame, for all K couplings' conditioners to read.
+
 Both have zero-initialised heads (a coupling starts as a fixed per-channel map), a
 ``step(x_a_t, cond_t, carry) -> (h_t, carry)`` frame API with ``initial_carry(batch_shape)``,
 and do their matmuls in ``compute_dtype`` with float32 accumulation
@@ -27,7 +30,36 @@ from motionflows.nets.precision import matmul
 
 Array = jax.Array
 
-__all__ = ["FeedForwardConditioner", "LSTMConditioner"]
+__all__ = ["CondEmbedding", "FeedForwardConditioner", "LSTMConditioner"]
+
+
+class CondEmbedding(nnx.Module):
+    """A linear map of the condition shared by all K couplings: e_t = cond_t @ W_embed.
+
+    (..., cond) -> (..., width), no bias (each conditioner's first layer has its own).
+    Coupling k's first layer then computes e_t @ V_k = cond_t @ (W_embed V_k): its weights on
+    the condition are constrained to rank ``width``, in a row space all K steps share, and
+    the (cond x 4H) product each coupling did per frame becomes one (cond x width) product
+    per frame plus K (width x 4H) ones. ``W_embed`` (cond, width) starts uniform in
+    +-1/sqrt(cond), as a first layer's weights do.
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        width: int,
+        *,
+        compute_dtype: str | None = None,
+        rngs: nnx.Rngs,
+    ):
+        bound = 1.0 / math.sqrt(in_features)
+        self.compute_dtype = compute_dtype
+        self.w_embed = nnx.Param(
+            jax.random.uniform(rngs.params(), (in_features, width), minval=-bound, maxval=bound)
+        )
+
+    def __call__(self, cond: Array) -> Array:
+        return matmul(cond, self.w_embed[...], self.compute_dtype)
 
 
 class LSTMConditioner(nnx.Module):

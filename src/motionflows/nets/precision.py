@@ -23,7 +23,7 @@ __all__ = ["MATMUL_WEIGHTS", "matmul", "outer_sum", "product"]
 
 # The parameters the conditioner modules only ever use through :func:`matmul` (LSTM, MLP
 # and convolution weights); biases, ActNorm and the 1x1 maps are never among them.
-MATMUL_WEIGHTS = frozenset({"w_ih", "w_hh", "w_out", "ws", "kernel"})
+MATMUL_WEIGHTS = frozenset({"w_ih", "w_hh", "w_out", "ws", "kernel", "w_embed"})
 
 
 def product(x: Array, w: Array, cd) -> Array:
