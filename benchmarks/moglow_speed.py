@@ -14,6 +14,11 @@ bfloat16 matmuls) through :func:`motionflows.inference.stream_stepper` (the modu
 once; before 2026-12-04 each call passed the module itself). ``stacked_sample_*`` times
 ``sample`` on the model itself (the training layout, K steps stacked; what every sampler
 used before 2026-12-03).
+The training step is data-parallel over every device, as ``motionflows train`` runs it
+(:mod:`motionflows.sharding`: parameters replicated, the batch split): one device unless
+there are several GPUs or simulated CPU devices, e.g.
+``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (docs/readme/speed.md: on 2 CPU
+cores this runs the time loops of the two halves of the batch side by side).
 The bfloat16 run trains and samples with bfloat16 conditioner matmuls (float32 weights); it
 also times ``sample`` from ``inference_copy(model, "bfloat16")`` (the weights *stored* in
 bfloat16, half the bytes a batch-1 frame reads): ``inference_copy_sample_*``.
@@ -45,8 +50,11 @@ from flax import nnx
 from motionflows import roofline
 from motionflows.bijectors import initialize_from_data
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.distributed import configure_cpu_threads
+from motionflows.errors import RunError
 from motionflows.inference import inference_copy, stream_stepper, streaming_model
 from motionflows.models.moglow import MoGlow
+from motionflows.sharding import batch_sharding, check_batch_size, data_mesh, replicate
 
 PAPER = {
     "K": 16,
@@ -226,7 +234,12 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     weight_bytes = roofline.tree_bytes(params)
     read = roofline.weight_read(weight_bytes, peaks["memory_repeats"])
     res: dict = {"dtype": dtype, "weight_bytes": weight_bytes, "weight_read": read}
-    args = (params, opt_state, pose, control, k_drop)
+    mesh = data_mesh()  # as the trainer: data-parallel over every device (usually one)
+    check_batch_size(cfg["batch"], mesh)
+    res["train_devices"] = int(mesh.devices.size)
+    shard = batch_sharding(mesh)
+    args = (*replicate((params, opt_state), mesh), jax.device_put(pose, shard),
+            jax.device_put(control, shard), k_drop)  # fmt: skip
     _time_training(res, train_step, args, peak, repeats, warmup)
     print(
         f"{dtype:>9} training step {res['train_step_s']:.4f} s (compile "
@@ -311,6 +324,10 @@ def summary_text(out: dict) -> str:
                 f"{res['inference_copy_sample_ms_per_frame_b1']:.2f} ms/frame, b64 "
                 f"{res['inference_copy_sample_ms_per_frame_b64']:.2f} ms/frame-step"
             )
+        if res["train_devices"] > 1:
+            lines.append(
+                f"{res['dtype']:>9} training data-parallel over {res['train_devices']} devices"
+            )
         lines.append(
             f"{res['dtype']:>9} peak RSS after its training "
             f"{res['peak_rss_mb_after_training'] / 1024:.2f} GiB (process maximum so far)"
@@ -330,6 +347,11 @@ def main(argv=None) -> int:
         ap.error(f"--dtypes takes float32 and/or bfloat16, comma-separated; got {args.dtypes!r}")
     cfg = QUICK if args.quick else PAPER
     repeats = args.repeats or (3 if args.quick else 2)
+    try:  # before the first JAX computation: simulated CPU devices need 2 threads each
+        configure_cpu_threads()
+    except RunError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     out = {
         "benchmark": "moglow_speed",
         "config": {

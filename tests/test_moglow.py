@@ -615,9 +615,7 @@ def test_cond_embedding_is_one_linear_map_all_steps_read_and_only_a_condition():
     pose, control = _data(b=1, t=6, seed=6)
     z, ld = model.inverse_and_log_det(pose, context=control, scope="window")
     targets, cond, previous = model.conditions(pose, control, scope="window")
-    by_hand, ld_hand = model.flow.inverse_and_log_det(
-        targets - previous, context=model.embed(cond)
-    )
+    by_hand, ld_hand = model.flow.inverse_and_log_det(targets - previous, context=model.embed(cond))
     np.testing.assert_allclose(z, by_hand, atol=1e-6)
     np.testing.assert_allclose(ld, ld_hand, rtol=1e-6)
 
@@ -631,6 +629,14 @@ def test_cond_embedding_is_one_linear_map_all_steps_read_and_only_a_condition():
     other.embed.w_embed.set_value(other.embed.w_embed[...] * 2.0)
     moved = other.inverse_and_log_det(pose, context=control, scope="window")[0]
     assert np.abs(np.asarray(moved - z)).max() > 1e-3
+    from motionflows.inference import inference_copy  # unrolled steps, the same map
+
+    np.testing.assert_allclose(
+        inference_copy(model).sample(jax.random.key(9), control),
+        model.sample(jax.random.key(9), control),
+        atol=1e-5,
+    )
+    assert inference_copy(model, "bfloat16").embed.w_embed.dtype == jnp.bfloat16
     with pytest.raises(ValueError, match="cond_embedding must be 0"):
         MoGlow(D, C, cond_embedding=-1, rngs=jax.random.key(0))
 

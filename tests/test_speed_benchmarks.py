@@ -77,6 +77,7 @@ def test_moglow_speed_quick_reports_floors():
     # the training layout's sampler and the bfloat16-stored copy are timed beside it
     for name in ("stacked_sample", "inference_copy_sample"):
         assert res[f"{name}_ms_per_frame_b1"] > 0 and res[f"{name}_ms_per_frame_b64"] > 0
+    assert res["train_devices"] == len(jax.devices())  # data-parallel as the trainer is
 
 
 def test_glow_fixed_speed_quick_reports_floors():

@@ -285,7 +285,8 @@ class MoGlow(nnx.Module):
         and K (E x 4H): with tau = 5 (cond 333), E = 64 and a 128-unit LSTM, the
         conditioners' products per frame fall by about half. A condition only: log-dets
         and the residual's previous pose are unchanged (the ``Difference`` reads cond_t).
-        Our option (docs/readme/cpu_budget.md).
+        Our option; no preset uses it: at E = 64 the ``cpu`` preset trains 24 % faster but its
+        pose statistics are worse (docs/readme/cpu_budget.md).
       history_noise: standard deviation (standardised units) of Gaussian noise added to
         every history pose when :meth:`log_prob` is given a key (training): the histories
         and, with ``residual``, the pose the change is added to are x~_s = x_s + sigma *
@@ -461,7 +462,9 @@ class MoGlow(nnx.Module):
         self.flow = Scan(factory, self.K, rngs=rngs)
         # drawn after the steps, so that the steps' initial parameters do not depend on it
         self.embed = (
-            CondEmbedding(self.cond_dim, self.cond_embedding, compute_dtype=compute_dtype, rngs=rngs)
+            CondEmbedding(
+                self.cond_dim, self.cond_embedding, compute_dtype=compute_dtype, rngs=rngs
+            )
             if self.cond_embedding
             else None
         )

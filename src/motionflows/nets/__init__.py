@@ -2,9 +2,9 @@
 
 ``MLP`` / ``coupling_mlp`` (per frame, :mod:`motionflows.nets.mlp`) are imported eagerly;
 the sequence networks (``ConvNet``, ``TimeConv`` in :mod:`motionflows.nets.conv`, ``LSTM``,
-``LSTMLayer`` in :mod:`motionflows.nets.lstm`; MoGlow's ``LSTMConditioner`` and
-``FeedForwardConditioner`` in :mod:`motionflows.nets.moglow_conditioners`) are imported on
-first access.
+``LSTMLayer`` in :mod:`motionflows.nets.lstm`; MoGlow's ``LSTMConditioner``,
+``FeedForwardConditioner`` and ``CondEmbedding`` in :mod:`motionflows.nets.moglow_conditioners`)
+are imported on first access.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ _LAZY = {
     "LSTMLayer": "motionflows.nets.lstm",
     "LSTMConditioner": "motionflows.nets.moglow_conditioners",
     "FeedForwardConditioner": "motionflows.nets.moglow_conditioners",
+    "CondEmbedding": "motionflows.nets.moglow_conditioners",
 }
 
 __all__ = ["MLP", "coupling_mlp", *_LAZY]

@@ -8,13 +8,13 @@ parameters h (..., T, out) frame by frame, causally:
   the LSTM carrying its state along time;
 * :class:`FeedForwardConditioner` (the Markov ablation): ``h_t = MLP([x_a_t, cond_t])``.
 
-:class:`CondEmbedding` (MoGlow's ``cond_embedding``, not in the official model) maps cond_t
-to fewer features once per frame, for all K couplings' conditioners to read.
-
 Both have zero-initialised heads (a coupling starts as a fixed per-channel map), a
 ``step(x_a_t, cond_t, carry) -> (h_t, carry)`` frame API with ``initial_carry(batch_shape)``,
 and do their matmuls in ``compute_dtype`` with float32 accumulation
 (:func:`motionflows.nets.precision.matmul`).
+
+:class:`CondEmbedding` (MoGlow's ``cond_embedding``, not in the official model) maps cond_t
+to fewer features once per frame, for all K couplings' conditioners to read.
 """
 
 from __future__ import annotations
