@@ -23,7 +23,7 @@ from motionflows import roofline
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run_quick(script: str, dtype: str) -> dict:
+def _run_quick(script: str, dtype: str, **env) -> dict:
     proc = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks" / script), "--quick", "--dtypes", dtype],
         capture_output=True,
@@ -31,7 +31,7 @@ def _run_quick(script: str, dtype: str) -> dict:
         timeout=600,
         # the same backend as the suite (CPU, or a GPU if present); standard dtype promotion,
         # as the scripts call optax's Adam directly (its bias correction is float ** int32)
-        env={**os.environ, "JAX_NUMPY_DTYPE_PROMOTION": "standard"},
+        env={**os.environ, "JAX_NUMPY_DTYPE_PROMOTION": "standard", **env},
         cwd=ROOT,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -78,6 +78,18 @@ def test_moglow_speed_quick_reports_floors():
     for name in ("stacked_sample", "inference_copy_sample"):
         assert res[f"{name}_ms_per_frame_b1"] > 0 and res[f"{name}_ms_per_frame_b64"] > 0
     assert res["train_devices"] == len(jax.devices())  # data-parallel as the trainer is
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="simulated devices are CPU devices")
+def test_moglow_speed_trains_data_parallel_over_simulated_cpu_devices():
+    """As the trainer: the batch split over every device (here 2 simulated CPU devices, each
+    given its XLA threads first), the step timed, the devices named in the summary."""
+    flags = " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=2"])
+    env = {"XLA_FLAGS": flags.strip(), "PJRT_NPROC": "", "NPROC": ""}
+    out = _run_quick("moglow_speed.py", "float32", **env)
+    res = out["results"][0]
+    assert res["train_devices"] == 2 and res["train_step_s"] > 0
+    assert "2 x cpu" in out["machine"]["devices"]
 
 
 def test_glow_fixed_speed_quick_reports_floors():
