@@ -384,6 +384,16 @@ def test_no_progress_trains_without_bars_and_keeps_the_bench_lines(monkeypatch, 
     assert sum("training smoke preset" in line for line in lines) == 2
 
 
+def test_the_speed_section_says_when_sampling_ran_on_simulated_cpu_devices():
+    from motionflows.bench.report import simulated_devices_note
+
+    assert simulated_devices_note({"backend": "cpu", "devices": "1 x cpu"}) == ""
+    assert simulated_devices_note({"backend": "gpu", "devices": "2 x NVIDIA H200"}) == ""
+    assert "4 simulated CPU devices" in simulated_devices_note(
+        {"backend": "cpu", "devices": "4 x cpu"}
+    )
+
+
 def test_motion_metrics_count_and_drop_diverged_samples():
     rng = np.random.default_rng(0)
     ds = load_dataset("synthetic", n_clips=4, seconds=4.0, window=40, hop=40, cache=False)

@@ -359,13 +359,28 @@ def _motion_section(results: dict, order: list[str]) -> list[str]:
     ]
 
 
+def simulated_devices_note(machine: dict) -> str:
+    """A sentence for a bench run on several simulated CPU devices, else ''."""
+    count = str(machine.get("devices", "")).split(" x ")[0]
+    if machine.get("backend") != "cpu" or not count.isdigit() or int(count) < 2:
+        return ""
+    return (
+        f" Run on {count} simulated CPU devices (`--xla_force_host_platform_device_count`): "
+        "training is data-parallel over them, and sampling on them ran 0.23-0.6x as fast as "
+        "on one device (docs/readme/speed.md), so compare these sampling columns only with "
+        "runs on as many devices."
+    )
+
+
 def _speed_section(results: dict, order: list[str]) -> list[str]:
     return [
         "## Speed\n",
         "Training frames/s: median of the run's logged frames/s (frames of pose data per "
         "second of training, data loading included). Sampling frames/s: generated frames per "
         f"second of wall time for {results['window']} frames per sequence at batch 1 and 64 "
-        "(jitted sampler, compile excluded and listed separately).\n",
+        "(jitted sampler, compile excluded and listed separately)."
+        + simulated_devices_note(results.get("machine", {}))
+        + "\n",
         speed_table(results, order) + "\n",
     ]
 
