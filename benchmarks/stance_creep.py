@@ -54,7 +54,7 @@ def one_step(model: MoGlow, pose_std, control_std, key, temperature: float) -> j
     (B, T - tau, D), standardised."""
     targets, cond, previous = model.conditions(pose_std, control_std, scope="official")
     z = temperature * model.base_density().sample(key, targets.shape[:-1])
-    u = model.flow.forward(z, context=cond)
+    u = model._steps().forward(z, context=cond)  # the K steps as the model runs them
     if not model.residual:
         return u
     return model._difference().forward_step(u, context_t=cond, carry=previous)[0]

@@ -25,6 +25,8 @@ def test_stance_steps_see_a_forward_creep_and_one_step_runs(benchmark_script):
     assert abs(drawn["forward_m_s"] - real["forward_m_s"] - 0.2) < 2e-3  # 1 cm x 20 fps
     assert drawn["speed_m_s"] > real["speed_m_s"]
 
-    model = MoGlow(tau=tau, K=1, hidden=8, num_layers=1, residual=True, rngs=nnx.Rngs(0))
-    x = creep.one_step(model, pose[:2], control[:2], jax.random.key(0), 0.0)
-    assert x.shape == (2, 40 - tau, 63) and np.all(np.isfinite(np.asarray(x)))
+    for embedding in (0, 8):  # the flow steps as the model runs them (cond_embedding too)
+        model = MoGlow(tau=tau, K=1, hidden=8, num_layers=1, residual=True,
+                       cond_embedding=embedding, rngs=nnx.Rngs(0))  # fmt: skip
+        x = creep.one_step(model, pose[:2], control[:2], jax.random.key(0), 0.0)
+        assert x.shape == (2, 40 - tau, 63) and np.all(np.isfinite(np.asarray(x)))
