@@ -394,6 +394,16 @@ def test_the_speed_section_says_when_sampling_ran_on_simulated_cpu_devices():
     )
 
 
+def test_bench_cpu_devices_flag_is_in_the_report_command_and_checked(capsys):
+    from motionflows import cli_bench
+
+    args = cli_bench.build_parser().parse_args(["--budget", "smoke", "--cpu-devices", "4"])
+    assert cli_bench._command(args, ("moglow",)).endswith("--cpu-devices 4")
+    assert cli_bench.main(["--budget", "smoke", "--cpu-devices", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["motionflows bench: error: --cpu-devices must be at least 1, got 0"]
+
+
 def test_motion_metrics_count_and_drop_diverged_samples():
     rng = np.random.default_rng(0)
     ds = load_dataset("synthetic", n_clips=4, seconds=4.0, window=40, hop=40, cache=False)

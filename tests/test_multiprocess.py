@@ -302,3 +302,45 @@ def test_too_few_threads_for_simulated_devices_is_one_line(tmp_path):
     [(rc, out)] = _launch([_train_cmd(tmp_path / "runs", 1)], [env])
     assert rc == 2, out[-3000:]
     assert "PJRT_NPROC=8" in _one_error_line(out)
+
+
+def test_cpu_devices_flag_trains_data_parallel(tmp_path):
+    env = _env(tmp_path)
+    for name in ("PJRT_NPROC", "NPROC"):
+        env.pop(name, None)
+    [(rc, out)] = _launch([_train_cmd(tmp_path / "runs", 2, "--cpu-devices", "2")], [env])
+    assert rc == 0, out[-3000:]
+    assert "data-parallel over 2 devices" in out
+    assert (tmp_path / "runs" / "moglow" / "tiny" / "metrics.jsonl").exists()
+
+
+def test_cpu_devices_flag_refuses_zero_with_one_line(tmp_path):
+    [(rc, out)] = _launch(
+        [_train_cmd(tmp_path / "runs", 2, "--cpu-devices", "0")], [_env(tmp_path)]
+    )
+    assert rc == 2, out[-3000:]
+    assert "--cpu-devices must be at least 1" in _one_error_line(out)
+
+
+def test_simulate_cpu_devices_sets_the_count_and_keeps_other_flags():
+    from motionflows.distributed import check_cpu_devices, simulate_cpu_devices
+
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=8 --xla_cpu_use_onednn=true"}
+    simulate_cpu_devices(2, env)
+    assert env["XLA_FLAGS"].split() == [
+        "--xla_cpu_use_onednn=true",
+        "--xla_force_host_platform_device_count=2",
+    ]
+    assert int(env["PJRT_NPROC"]) >= 4  # two threads per simulated device
+    untouched: dict = {}
+    simulate_cpu_devices(None, untouched)
+    assert untouched == {}
+    # this process's CPU backend has already started: a different count is refused
+    import jax
+
+    from motionflows.errors import RunError
+
+    started = len(jax.local_devices(backend="cpu"))
+    check_cpu_devices(started)
+    with pytest.raises(RunError, match="new process"):
+        check_cpu_devices(started + 1)

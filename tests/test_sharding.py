@@ -83,3 +83,74 @@ def test_sharded_step_equals_single_device_step():
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "OK" in proc.stdout
+
+
+PLACEMENT_SCRIPT = textwrap.dedent(
+    """
+    import jax, numpy as np
+    from flax import nnx
+    assert jax.device_count() == 2, jax.devices()
+    from experiments import moglow as exp
+    from motionflows.bench.speed import make_sampler, sample_in_chunks, time_sampler
+    from motionflows.evaluation.likelihood import evaluate_windows
+    from motionflows.sharding import data_mesh, data_parallel, replicate, shard_batch
+
+    model = exp.build(exp.PRESETS["smoke"], key=jax.random.key(0))
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    leaves, tree = jax.tree.flatten(params)
+    keys = jax.random.split(jax.random.key(1), len(leaves))
+    params = jax.tree.unflatten(
+        tree, [p + 0.05 * jax.random.normal(k, p.shape) for p, k in zip(leaves, keys)])
+    model = nnx.merge(graphdef, params, rest)  # non-zero heads: the couplings matter
+    mesh = data_mesh()
+    rep = replicate(model, mesh)
+
+    def devices(tree):
+        return {d for leaf in jax.tree.leaves(tree) for d in leaf.sharding.device_set}
+
+    assert data_parallel(model, 4) == (model, None)  # one device: as it is
+    same, m = data_parallel(rep, 4)
+    assert same is rep and m is mesh
+    one, m = data_parallel(rep, 3)  # 3 rows on 2 devices: the model on one device
+    assert m is None and len(devices(one)) == 1
+
+    rng = np.random.default_rng(0)
+    pose = rng.normal(size=(6, 16, 63)).astype(np.float32)
+    control = rng.normal(size=(6, 16, 3)).astype(np.float32)
+    sampler = make_sampler(exp, 0.8)
+    key = jax.random.key(2)
+    par = sampler(rep, key, shard_batch({"control": control[:4]}, mesh)["control"])
+    assert len(par.sharding.device_set) == 2 and not par.sharding.is_fully_replicated
+    np.testing.assert_allclose(par, sampler(model, key, control[:4]), atol=1e-4)
+    np.testing.assert_allclose(
+        sample_in_chunks(sampler, rep, control, key),
+        sample_in_chunks(sampler, model, control, key), atol=1e-4)
+    for batch in (1, 2):
+        assert time_sampler(sampler, rep, control, batch, key, 1)["frames_per_s"] > 0
+    for bs in (2, 3):
+        a = evaluate_windows(exp, rep, pose, control, batch_size=bs, key=key)
+        b = evaluate_windows(exp, model, pose, control, batch_size=bs, key=key)
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_allclose(a[k], b[k], rtol=1e-5)
+    print("OK")
+    """
+)
+
+
+def test_replicated_model_scores_and_samples_data_parallel():
+    """A model replicated over 2 devices samples and scores each row once, on its share of
+    the devices (or on one device when the rows do not divide), with one device's results."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+    env["JAX_PLATFORMS"] = "cpu"
+    proc = subprocess.run(
+        [sys.executable, "-c", PLACEMENT_SCRIPT],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "OK" in proc.stdout

@@ -79,6 +79,9 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         help="only time a few training steps per model and print the projected "
         "training time of the budget on this machine (writes OUT/estimate.json)",
     )
+    from motionflows.cli_train import add_cpu_devices_argument
+
+    add_cpu_devices_argument(p)
     return p
 
 
@@ -109,6 +112,8 @@ def _command(args: argparse.Namespace, names: tuple[str, ...]) -> str:
         extra += f" --seed {args.seed}"
     if args.set:
         extra += " --set " + " ".join(args.set)
+    if args.cpu_devices is not None:
+        extra += f" --cpu-devices {args.cpu_devices}"
     return command_line(args.data, names, args.budget, args.out, extra)
 
 
@@ -117,10 +122,14 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
     returns the exit code (2 with one line on stderr for a user error)."""
     if args is None or isinstance(args, list | tuple):
         args = build_parser().parse_args(list(args) if args is not None else None)
+    from motionflows import distributed
     from motionflows.bench.benchmark import run_benchmark
     from motionflows.bench.budgets import parse_models
 
     try:
+        distributed.simulate_cpu_devices(args.cpu_devices)  # before JAX starts
+        distributed.configure_cpu_threads()
+        distributed.check_cpu_devices(args.cpu_devices)
         names = parse_models(args.models)
         if args.estimate:
             _estimate(args, names)

@@ -53,6 +53,19 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-eval", action="store_true", help="skip the final test table")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_cpu_devices_argument(parser)
+
+
+def add_cpu_devices_argument(parser: argparse.ArgumentParser) -> None:
+    """``--cpu-devices N`` (:func:`motionflows.distributed.simulate_cpu_devices`)."""
+    parser.add_argument(
+        "--cpu-devices",
+        type=int,
+        default=None,
+        metavar="N",
+        help="train data-parallel over N simulated CPU devices (the small presets on a "
+        "2-core CPU: 2-4, ~20%% faster; docs/readme/running.md)",
+    )
 
 
 def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, Path]:
@@ -95,13 +108,18 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
 
 def run_train(module: Any, args: argparse.Namespace) -> int:
     """Train from parsed flags, then print the test table; the exit code."""
-    distributed.configure_cpu_threads()  # before JAX starts its CPU backend
+    # before JAX starts its CPU backend
+    distributed.simulate_cpu_devices(args.cpu_devices)
+    distributed.configure_cpu_threads()
     if distributed.initialize():  # MOTIONFLOWS_COORDINATOR etc. (see motionflows.distributed)
         print(
             f"process {jax.process_index()} of {jax.process_count()}, "
             f"{jax.device_count()} devices in all",
             file=sys.stderr,
         )
+    elif jax.device_count() > 1:
+        print(f"data-parallel over {jax.device_count()} devices", file=sys.stderr)
+    distributed.check_cpu_devices(args.cpu_devices)
     module = runs.resolve_experiment(module)
     config, preset, run_dir = configure(module, args)
     distributed.check_same_config(module.NAME, config)

@@ -7,6 +7,8 @@ this module holds what is per process:
   the environment variables below, and turns the failures that would otherwise abort in
   native code (a coordinator that cannot be reached, processes that never join) into one
   :class:`~motionflows.errors.RunError` line;
+* :func:`simulate_cpu_devices` (the CLI's ``--cpu-devices N``) splits the CPU into N
+  simulated XLA devices, :func:`check_cpu_devices` confirms JAX started with them;
 * :func:`configure_cpu_threads` sizes XLA:CPU's thread pool for simulated devices
   (``--xla_force_host_platform_device_count=N``) so that their all-reduce cannot deadlock;
 * :func:`check_same_config` refuses to train when the processes were given different
@@ -56,6 +58,41 @@ def simulated_device_count(xla_flags: str | None = None) -> int:
     flags = os.environ.get("XLA_FLAGS", "") if xla_flags is None else xla_flags
     found = _DEVICE_COUNT_FLAG.findall(flags)
     return int(found[-1]) if found else 1
+
+
+def simulate_cpu_devices(n: int | None, environ: dict | None = None) -> None:
+    """``--cpu-devices N``: run JAX's CPU backend as N simulated devices.
+
+    Sets ``--xla_force_host_platform_device_count=N`` in ``XLA_FLAGS`` (replacing a count
+    given there; other flags are kept), then sizes the thread pool
+    (:func:`configure_cpu_threads`). XLA reads both when JAX starts its CPU backend, so
+    this must run before the first JAX computation; :func:`check_cpu_devices` afterwards
+    says so if it came too late. The trainer is data-parallel over all devices, so each
+    device trains on batch / N windows with its own threads: on a 2-core CPU this runs
+    the small models' time loops side by side (docs/readme/speed.md). None: nothing.
+    """
+    if n is None:
+        return
+    if n < 1:
+        raise RunError(f"--cpu-devices must be at least 1, got {n}")
+    env = os.environ if environ is None else environ
+    flags = _DEVICE_COUNT_FLAG.sub("", env.get("XLA_FLAGS", "")).split()
+    env["XLA_FLAGS"] = " ".join([*flags, f"--xla_force_host_platform_device_count={n}"])
+    configure_cpu_threads(env)
+
+
+def check_cpu_devices(n: int | None) -> None:
+    """Refuse to go on when ``--cpu-devices n`` did not take effect (JAX's CPU backend had
+    already started in this process with another device count)."""
+    if n is None:
+        return
+    got = len(jax.local_devices(backend="cpu"))
+    if got != n:
+        raise RunError(
+            f"--cpu-devices {n} came after JAX had started its CPU backend with {got} "
+            f"device(s) in this process: run the command in a new process, or set "
+            f"XLA_FLAGS=--xla_force_host_platform_device_count={n} before JAX is imported"
+        )
 
 
 def configure_cpu_threads(environ: dict | None = None) -> int | None:

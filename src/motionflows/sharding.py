@@ -64,3 +64,28 @@ def shard_batch(batch: dict[str, Any], mesh: Mesh) -> dict[str, jax.Array]:
             value.shape, sharding, lambda index, value=value: value[index]
         )
     return out
+
+
+def data_parallel(model: Any, rows: int) -> tuple[Any, Mesh | None]:
+    """Where a jitted call on ``model`` and batches of ``rows`` rows computes each row once.
+
+    Returns ``(model, mesh)``: pass each batch through :func:`shard_batch` on ``mesh``
+    when it is not None. A model replicated over a mesh of several devices of this
+    process (as training and the bench leave it) would otherwise run the whole batch on
+    every device, each a full copy of the work on the same cores (4 simulated CPU devices:
+    4x the work). So the batch is split over that mesh when ``rows`` divides evenly (each
+    device scores or samples its own rows), else the model is copied to the mesh's first
+    device. A model on one device, or on devices of several processes, is returned as it
+    is with mesh None.
+    """
+    mesh = None
+    for leaf in jax.tree.leaves(model):
+        sharding = getattr(leaf, "sharding", None)
+        if isinstance(sharding, NamedSharding) and sharding.is_fully_replicated:
+            mesh = sharding.mesh
+        break
+    if mesh is None or mesh.devices.size == 1 or mesh.is_multi_process:
+        return model, None
+    if rows % mesh.devices.size == 0:
+        return model, mesh
+    return jax.device_put(model, mesh.devices.flat[0]), None

@@ -365,10 +365,11 @@ def simulated_devices_note(machine: dict) -> str:
     if machine.get("backend") != "cpu" or not count.isdigit() or int(count) < 2:
         return ""
     return (
-        f" Run on {count} simulated CPU devices (`--xla_force_host_platform_device_count`): "
-        "training is data-parallel over them, and sampling on them ran 0.23-0.6x as fast as "
-        "on one device (docs/readme/speed.md), so compare these sampling columns only with "
-        "runs on as many devices."
+        f" Run on {count} simulated CPU devices (`--cpu-devices {count}`): training, scoring "
+        "and batch-64 sampling are data-parallel over them, batch-1 sampling runs on one of "
+        "them, and all of them share this machine's cores and threads "
+        "(docs/readme/speed.md), so compare these speed columns only with runs on as many "
+        "devices."
     )
 
 

@@ -104,8 +104,13 @@ def time_sampler(sampler, model, control: np.ndarray, batch: int, key, repeats: 
     """Sampling speed at ``batch``: frames/s (compile excluded) and compile seconds."""
     import jax
 
+    from motionflows.sharding import data_parallel, shard_batch
+
     reps = int(math.ceil(batch / len(control)))
     c = np.concatenate([control] * reps)[:batch]
+    model, mesh = data_parallel(model, batch)  # placed once, outside the timing
+    if mesh is not None:
+        c = shard_batch({"control": c}, mesh)["control"]
     t0 = time.perf_counter()
     jax.block_until_ready(sampler(model, key, c))
     first = time.perf_counter() - t0
@@ -125,11 +130,17 @@ def sample_in_chunks(sampler, model, control: np.ndarray, key) -> np.ndarray:
     (``motionflows.run.draw_samples`` is the other sampler: one control in data units.)"""
     import jax
 
+    from motionflows.sharding import data_parallel, shard_batch
+
     out = []
     n = len(control)
+    model, mesh = data_parallel(model, EVAL_CHUNK)
     for b, start in enumerate(range(0, n, EVAL_CHUNK)):
         idx = np.arange(start, start + EVAL_CHUNK) % n
-        x = sampler(model, jax.random.fold_in(key, b), control[idx])
+        chunk = control[idx]
+        if mesh is not None:
+            chunk = shard_batch({"control": chunk}, mesh)["control"]
+        x = sampler(model, jax.random.fold_in(key, b), chunk)
         out.append(np.asarray(x, np.float32)[: min(EVAL_CHUNK, n - start)])
     return np.concatenate(out)
 

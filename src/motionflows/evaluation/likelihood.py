@@ -168,7 +168,8 @@ def evaluate_windows(
     """Run ``module.evaluate`` over all windows (standardised (N, T, D) arrays) in batches.
 
     The last batch is padded by repeating windows (the padding is dropped), so one compiled
-    shape serves every batch. ``evaluate_fn(model, batch, key)`` may be a pre-jitted
+    shape serves every batch. A model replicated over several devices scores each batch
+    data-parallel (:func:`motionflows.sharding.data_parallel`). ``evaluate_fn(model, batch, key)`` may be a pre-jitted
     ``module.evaluate``. Returns ``{scope: (N,) float64}``.
     """
     import jax
@@ -181,8 +182,11 @@ def evaluate_windows(
     n = pose.shape[0]
     if n == 0:
         raise ValueError("the split has no windows to evaluate")
+    from motionflows.sharding import data_parallel, shard_batch
+
     fn = evaluate_fn or jax.jit(module.evaluate)
     bs = max(1, min(batch_size, n))
+    model, mesh = data_parallel(model, bs)
     out: dict[str, list] = {}
     for b, start in enumerate(range(0, n, bs)):
         idx = np.arange(start, start + bs) % n
@@ -190,6 +194,8 @@ def evaluate_windows(
             "pose": np.asarray(pose[idx], np.float32),
             "control": np.asarray(control[idx], np.float32),
         }
+        if mesh is not None:
+            batch = shard_batch(batch, mesh)
         res = fn(model, batch, jax.random.fold_in(key, b))
         keep = min(bs, n - start)
         for k, v in res.items():
