@@ -169,8 +169,8 @@ def evaluate_windows(
 
     The last batch is padded by repeating windows (the padding is dropped), so one compiled
     shape serves every batch. A model replicated over several devices scores each batch
-    data-parallel (:func:`motionflows.sharding.data_parallel`). ``evaluate_fn(model, batch, key)`` may be a pre-jitted
-    ``module.evaluate``. Returns ``{scope: (N,) float64}``.
+    data-parallel (:func:`motionflows.sharding.data_parallel`). ``evaluate_fn(model, batch,
+    key)`` may be a pre-jitted ``module.evaluate``. Returns ``{scope: (N,) float64}``.
     """
     import jax
 
