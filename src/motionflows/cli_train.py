@@ -63,8 +63,8 @@ def add_cpu_devices_argument(parser: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="train data-parallel over N simulated CPU devices (the small presets on a "
-        "2-core CPU: 2-4, ~20%% faster; docs/readme/running.md)",
+        help="train data-parallel over N simulated CPU devices (the cpu MoGlow on 2 cores: "
+        "2-4, 18-29%% faster; docs/readme/running.md)",
     )
 
 

@@ -78,13 +78,12 @@ def data_parallel(model: Any, rows: int) -> tuple[Any, Mesh | None]:
     device. A model on one device, or on devices of several processes, is returned as it
     is with mesh None.
     """
-    mesh = None
-    for leaf in jax.tree.leaves(model):
-        sharding = getattr(leaf, "sharding", None)
-        if isinstance(sharding, NamedSharding) and sharding.is_fully_replicated:
-            mesh = sharding.mesh
-        break
-    if mesh is None or mesh.devices.size == 1 or mesh.is_multi_process:
+    leaves = jax.tree.leaves(model)
+    sharding = getattr(leaves[0], "sharding", None) if leaves else None
+    if not isinstance(sharding, NamedSharding) or not sharding.is_fully_replicated:
+        return model, None
+    mesh = sharding.mesh
+    if mesh.devices.size == 1 or mesh.is_multi_process:
         return model, None
     if rows % mesh.devices.size == 0:
         return model, mesh
