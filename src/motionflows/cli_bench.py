@@ -79,6 +79,11 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         help="only time a few training steps per model and print the projected "
         "training time of the budget on this machine (writes OUT/estimate.json)",
     )
+    p.add_argument(
+        "--foot-lock",
+        action="store_true",
+        help="also score each model's samples after the foot-lock post-process (extra rows)",
+    )
     from motionflows.cli_train import add_cpu_devices_argument
 
     add_cpu_devices_argument(p)
@@ -112,6 +117,8 @@ def _command(args: argparse.Namespace, names: tuple[str, ...]) -> str:
         extra += f" --seed {args.seed}"
     if args.set:
         extra += " --set " + " ".join(args.set)
+    if args.foot_lock:
+        extra += " --foot-lock"
     if args.cpu_devices is not None:
         extra += f" --cpu-devices {args.cpu_devices}"
     return command_line(args.data, names, args.budget, args.out, extra)
@@ -139,7 +146,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             runs_dir=args.runs_dir, temperature=args.temperature, seed=args.seed,
             performer_split=args.performer_split, retrain=args.retrain, gifs=args.gifs,
             command=_command(args, names), test_data=args.test_data, overrides=args.set,
-            training_bars=args.training_bars,
+            training_bars=args.training_bars, foot_lock=args.foot_lock,
         )  # fmt: skip
     except (RunError, ValueError, MotionDataError) as err:
         print(f"motionflows bench: error: {err}", file=sys.stderr)

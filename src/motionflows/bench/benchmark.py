@@ -40,6 +40,7 @@ from motionflows.bench.reuse import (
 )
 from motionflows.bench.scoring import (
     MOTION_METRICS,
+    foot_locked,
     merge_splits,
     motion_metrics,
     natural_diversity_of,
@@ -204,9 +205,11 @@ def bench_model(
     dataset=None,
     overrides: Sequence[str] = (),
     training_bars: bool = True,
+    foot_lock: bool = False,
 ) -> dict:
     """Everything the report holds about one model; ``entry["_samples"]`` (metres, not saved
-    to JSON) keeps the motion samples for the GIFs."""
+    to JSON) keeps the motion samples for the GIFs. ``foot_lock`` also scores the same
+    samples after the foot-lock post-process (``entry["motion_foot_lock"]``)."""
     import jax
 
     entry: dict[str, Any] = {}
@@ -257,6 +260,13 @@ def bench_model(
         control_m = np.asarray(loaded.dataset.test.control, np.float32)[motion_idx]
         entry["motion"] = motion_metrics(samples_m, control_m, gt_m, div_m, float(data.fps))
         entry["_samples"] = samples_m
+        if foot_lock:
+            log(progress, f"{name}: the same samples after the foot lock, motion metrics")
+            div_control = np.repeat(control_m[:1], len(div_m), axis=0)
+            entry["motion_foot_lock"] = motion_metrics(
+                foot_locked(samples_m, control_m), control_m, gt_m,
+                foot_locked(div_m, div_control), float(data.fps),
+            )  # fmt: skip
     return entry
 
 
@@ -427,6 +437,7 @@ def run_benchmark(
     test_data: str | None = None,
     overrides: Sequence[str] = (),
     training_bars: bool = True,
+    foot_lock: bool = False,
 ) -> dict:
     """Train (or reuse) every model on one data configuration, score, sample, time and report.
 
@@ -441,7 +452,9 @@ def run_benchmark(
     with the training standardiser). ``overrides``: ``key=value`` config changes (``--set``,
     e.g. ``train.seed=1``) applied to every model whose config has the key.
     ``training_bars=False`` trains without progress bars (``--no-progress``); the
-    time-stamped ``progress`` lines stay.
+    time-stamped ``progress`` lines stay. ``foot_lock`` (``--foot-lock``) adds, under each
+    model's motion row, the same samples scored after the foot-lock post-process
+    (:func:`motionflows.foot_lock.foot_lock`), labelled as such.
     """
     wall0 = time.perf_counter()
     _check(budget, temperature)
@@ -474,7 +487,7 @@ def run_benchmark(
     results.update(motion_metrics=dict(MOTION_METRICS), motion_note=report.MOTION_NOTE)
     options = dict(
         temperature=temperature, seed=seed, retrain=retrain, strict=strict, overrides=overrides,
-        training_bars=training_bars,
+        training_bars=training_bars, foot_lock=foot_lock,
     )  # fmt: skip
     samples = {}
     for name in names:

@@ -148,6 +148,8 @@ def motion_table(results: dict, order: list[str]) -> str:
             rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
             continue
         rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
+        if locked := entry.get("motion_foot_lock"):
+            rows.append([f"{name} + foot lock"] + [_fmt(locked.get(k), 3) for k in keys])
     return _table(header, rows)
 
 
@@ -354,9 +356,22 @@ def _motion_section(results: dict, order: list[str]) -> list[str]:
         f"from {results.get('diversity_samples', 'several')} samples under one control; the "
         "first row scores the ground-truth test motion the same way. "
         + results.get("motion_note", "")
+        + foot_lock_note(results)
         + "\n",
         motion_table(results, order) + "\n",
     ]
+
+
+def foot_lock_note(results: dict) -> str:
+    """A sentence for a bench run with ``--foot-lock``, else ''."""
+    if not any(e.get("motion_foot_lock") for e in results.get("models", {}).values()):
+        return ""
+    return (
+        " Rows '+ foot lock' (`--foot-lock`) score the same samples after a post-process "
+        "that holds each planted foot where it stands (`motionflows.foot_lock.foot_lock`: "
+        "the calibrated contact rule's stances, a 3-frame fade, a two-bone IK that keeps the "
+        "bone lengths); they are not the models' samples, and the row above each is."
+    )
 
 
 def simulated_devices_note(machine: dict) -> str:

@@ -201,6 +201,19 @@ def diverged(samples_m) -> np.ndarray:
     return ~np.all(np.isfinite(x) & (np.abs(x) <= DIVERGED_METRES), axis=1)
 
 
+def foot_locked(samples_m, control_m) -> np.ndarray:
+    """``samples_m`` (N, T, 63) metres after :func:`motionflows.foot_lock.foot_lock` with
+    their controls (N, T, 3); diverged samples (:func:`diverged`) are left as drawn, so
+    :func:`motion_metrics` counts them as before. The bench's ``--foot-lock`` rows."""
+    from motionflows.foot_lock import foot_lock
+
+    out = np.array(samples_m, np.float32)
+    ok = ~diverged(out)
+    if ok.any():
+        out[ok] = foot_lock(out[ok], np.asarray(control_m, np.float32)[ok])
+    return out
+
+
 def natural_diversity_of(windows) -> float | None:
     """The ground-truth row's diversity: :func:`motionflows.evaluation.motion.natural_diversity`
     of every complete window of a split, each paired with the window of another take whose
