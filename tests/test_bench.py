@@ -56,12 +56,12 @@ def smoke(tmp_path_factory):
     return root, results
 
 
-def _bench_again(smoke, out, models: str, overrides=()) -> dict:
+def _bench_again(smoke, out, models: str, overrides=(), **options) -> dict:
     """The smoke bench once more on ``models``, against the fixture's runs directory."""
     root, _ = smoke
     return bench.run_benchmark(
         data="synthetic", models=models, budget="smoke", out=out, runs_dir=root / "runs",
-        strict=True, gifs=False, progress=None, overrides=overrides,
+        strict=True, gifs=False, progress=None, overrides=overrides, **options,
     )  # fmt: skip
 
 
@@ -204,6 +204,34 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     assert bench.find_run(root / "runs", prov["experiment"], config) is not None
     other = config.__class__(**{**config.__dict__, "tau": config.tau + 1})
     assert bench.find_run(root / "runs", prov["experiment"], other) is None
+
+
+def test_foot_lock_rows_score_the_locked_samples_beside_the_drawn(smoke, tmp_path):
+    root, first = smoke
+    assert "foot lock" not in (root / "out" / "BENCHMARK.md").read_text()
+    again = _bench_again(smoke, tmp_path / "out", "linear_ar", foot_lock=True)
+    entry = again["models"]["linear_ar"]
+    drawn, locked = entry["motion"], entry["motion_foot_lock"]
+    assert drawn["foot_sliding"] == pytest.approx(
+        first["models"]["linear_ar"]["motion"]["foot_sliding"]
+    )  # the drawn row is still the samples as drawn
+    assert locked["foot_sliding"] < 0.5 * drawn["foot_sliding"]
+    assert locked["bone_length_std"] == pytest.approx(drawn["bone_length_std"], rel=1e-3)
+    text = (tmp_path / "out" / "BENCHMARK.md").read_text()
+    assert "| linear_ar + foot lock |" in text and "they are not the models' samples" in text
+
+
+def test_foot_locked_leaves_diverged_samples_as_drawn(smoke):
+    from motionflows.bench.scoring import foot_locked
+
+    _, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke").load()
+    pose = np.asarray(data.test.pose[:3], np.float32).copy()
+    control = np.asarray(data.test.control[:3], np.float32)
+    pose[1, 5, 0] = np.nan
+    out = foot_locked(pose, control)
+    np.testing.assert_array_equal(out[1], pose[1])
+    assert np.all(np.isfinite(out[[0, 2]])) and out.shape == pose.shape
 
 
 def _run_dir(root: Path, entry: dict) -> Path:
