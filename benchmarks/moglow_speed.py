@@ -18,7 +18,10 @@ The training step is data-parallel over every device, as ``motionflows train`` r
 (:mod:`motionflows.sharding`: parameters replicated, the batch split): one device unless
 there are several GPUs or simulated CPU devices, e.g.
 ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (docs/readme/speed.md: on 2 CPU
-cores this runs the time loops of the two halves of the batch side by side).
+cores this runs the time loops of the two halves of the batch side by side). The step
+donates the parameters and the optimiser state, as the trainer's step does (since
+2026-12-05; before, the benchmark kept both, which raised its peak memory:
+docs/readme/speed.md).
 The bfloat16 run trains and samples with bfloat16 conditioner matmuls (float32 weights); it
 also times ``sample`` from ``inference_copy(model, "bfloat16")`` (the weights *stored* in
 bfloat16, half the bytes a batch-1 frame reads): ``inference_copy_sample_*``.
@@ -140,7 +143,10 @@ def _train_step(graph, rest, opt, n_targets: int):
 def _time_training(res: dict, train_step, args: tuple, peak: float, repeats: int, warmup: int):
     """Add the training step's FLOPs, compile time, memory, step times and floor to ``res``."""
     res["train_flops"] = roofline.matmul_flops(train_step, *args)
-    compiled, res["train_compile_s"] = roofline.compile_timed(jax.jit(train_step), *args)
+    # params and optimiser state donated, as the trainer's step donates them
+    # (motionflows.optim.make_train_step): the update may then overwrite them in place
+    step = jax.jit(train_step, donate_argnums=(0, 1))
+    compiled, res["train_compile_s"] = roofline.compile_timed(step, *args)
     mem = roofline.compiled_memory(compiled)
     for name in ("temp_bytes", "argument_bytes"):
         if name in mem:
@@ -238,7 +244,9 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     check_batch_size(cfg["batch"], mesh)
     res["train_devices"] = int(mesh.devices.size)
     shard = batch_sharding(mesh)
-    args = (*replicate((params, opt_state), mesh), jax.device_put(pose, shard),
+    # a copy of the parameters for the donated step: the model keeps its own for sampling
+    trained = jax.tree.map(jnp.copy, params)
+    args = (*replicate((trained, opt_state), mesh), jax.device_put(pose, shard),
             jax.device_put(control, shard), k_drop)  # fmt: skip
     _time_training(res, train_step, args, peak, repeats, warmup)
     print(
