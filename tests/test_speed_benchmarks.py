@@ -92,6 +92,27 @@ def test_moglow_speed_trains_data_parallel_over_simulated_cpu_devices():
     assert "2 x cpu" in out["machine"]["devices"]
 
 
+def test_moglow_speed_step_donates_its_state_as_the_trainer_does(monkeypatch):
+    """The timed step donates the parameters and Adam state (its peak memory is then the
+    trainer's), and the model it samples from afterwards keeps its own parameters."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import moglow_speed
+
+    seen = {}
+    timed = moglow_speed._time_training
+
+    def spy(res, train_step, args, *rest):
+        seen["state"] = args[:2]
+        return timed(res, train_step, args, *rest)
+
+    monkeypatch.setattr(moglow_speed, "_time_training", spy)
+    with jax.numpy_dtype_promotion("standard"):
+        peaks = roofline.measure_peaks(True)
+        res = moglow_speed.bench(moglow_speed.QUICK, "float32", 1, jax.random.key(0), peaks)
+    assert all(leaf.is_deleted() for leaf in jax.tree.leaves(seen["state"]))
+    assert res["sample_ms_per_frame_b1"] > 0 and res["stream_step_ms_b1_median"] > 0
+
+
 def test_glow_fixed_speed_quick_reports_floors():
     out = _run_quick("glow_fixed_speed.py", "float32")
     _check_common(out, ["train_step_s", "sample_s"])
