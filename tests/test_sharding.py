@@ -69,12 +69,13 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_sharded_step_equals_single_device_step():
+def _run_on_devices(script: str, devices: int) -> None:
+    """Run ``script`` in a new process on ``devices`` simulated CPU devices; it prints OK."""
     env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env["JAX_PLATFORMS"] = "cpu"
     proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT],
+        [sys.executable, "-c", script],
         env=env,
         cwd=ROOT,
         capture_output=True,
@@ -83,6 +84,10 @@ def test_sharded_step_equals_single_device_step():
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "OK" in proc.stdout
+
+
+def test_sharded_step_equals_single_device_step():
+    _run_on_devices(SCRIPT, 4)
 
 
 PLACEMENT_SCRIPT = textwrap.dedent(
@@ -141,16 +146,4 @@ PLACEMENT_SCRIPT = textwrap.dedent(
 def test_replicated_model_scores_and_samples_data_parallel():
     """A model replicated over 2 devices samples and scores each row once, on its share of
     the devices (or on one device when the rows do not divide), with one device's results."""
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
-    env["JAX_PLATFORMS"] = "cpu"
-    proc = subprocess.run(
-        [sys.executable, "-c", PLACEMENT_SCRIPT],
-        env=env,
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "OK" in proc.stdout
+    _run_on_devices(PLACEMENT_SCRIPT, 2)
