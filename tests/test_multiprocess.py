@@ -322,7 +322,7 @@ def test_cpu_devices_flag_refuses_zero_with_one_line(tmp_path):
     assert "--cpu-devices must be at least 1" in _one_error_line(out)
 
 
-def test_simulate_cpu_devices_sets_the_count_and_keeps_other_flags():
+def test_simulate_cpu_devices_sets_the_count_and_keeps_other_flags(monkeypatch):
     from motionflows.distributed import check_cpu_devices, simulate_cpu_devices
 
     env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=8 --xla_cpu_use_onednn=true"}
@@ -338,9 +338,20 @@ def test_simulate_cpu_devices_sets_the_count_and_keeps_other_flags():
     # this process's CPU backend has already started: a different count is refused
     import jax
 
+    monkeypatch.setattr(jax, "default_backend", lambda: "cpu")  # as on a GPU machine too
     from motionflows.errors import RunError
 
     started = len(jax.local_devices(backend="cpu"))
     check_cpu_devices(started)
     with pytest.raises(RunError, match="new process"):
         check_cpu_devices(started + 1)
+
+
+def test_cpu_devices_on_an_accelerator_warns_that_it_has_no_effect(monkeypatch):
+    import jax
+
+    from motionflows.distributed import check_cpu_devices
+
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    with pytest.warns(UserWarning, match="--cpu-devices 4 has no effect: JAX computes on gpu"):
+        check_cpu_devices(4)

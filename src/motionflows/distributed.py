@@ -32,6 +32,7 @@ import os
 import re
 import sys
 import threading
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -83,8 +84,16 @@ def simulate_cpu_devices(n: int | None, environ: dict | None = None) -> None:
 
 def check_cpu_devices(n: int | None) -> None:
     """Refuse to go on when ``--cpu-devices n`` did not take effect (JAX's CPU backend had
-    already started in this process with another device count)."""
+    already started in this process with another device count); warn when JAX computes on
+    an accelerator, where the simulated CPU devices stay unused."""
     if n is None:
+        return
+    if jax.default_backend() != "cpu":
+        warnings.warn(
+            f"--cpu-devices {n} has no effect: JAX computes on {jax.default_backend()} "
+            f"({jax.device_count()} device(s)), not on the CPU",
+            stacklevel=2,
+        )
         return
     got = len(jax.local_devices(backend="cpu"))
     if got != n:
