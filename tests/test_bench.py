@@ -221,10 +221,9 @@ def test_foot_lock_rows_score_the_locked_samples_beside_the_drawn(smoke, tmp_pat
     assert "| linear_ar + foot lock |" in text and "they are not the models' samples" in text
 
 
-def test_foot_locked_leaves_diverged_samples_as_drawn(smoke):
+def test_foot_locked_leaves_diverged_samples_as_drawn():
     from motionflows.bench.scoring import foot_locked
 
-    _, first = smoke
     data = bench.parse_data_spec("synthetic", "smoke").load()
     pose = np.asarray(data.test.pose[:3], np.float32).copy()
     control = np.asarray(data.test.control[:3], np.float32)
