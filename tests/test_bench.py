@@ -56,12 +56,12 @@ def smoke(tmp_path_factory):
     return root, results
 
 
-def _bench_again(smoke, out, models: str, overrides=(), **options) -> dict:
+def _bench_again(smoke, out, models: str, overrides=(), gifs=False, **options) -> dict:
     """The smoke bench once more on ``models``, against the fixture's runs directory."""
     root, _ = smoke
     return bench.run_benchmark(
         data="synthetic", models=models, budget="smoke", out=out, runs_dir=root / "runs",
-        strict=True, gifs=False, progress=None, overrides=overrides, **options,
+        strict=True, gifs=gifs, progress=None, overrides=overrides, **options,
     )  # fmt: skip
 
 
@@ -209,7 +209,7 @@ def test_second_bench_reuses_finished_runs(smoke, tmp_path):
 def test_foot_lock_rows_score_the_locked_samples_beside_the_drawn(smoke, tmp_path):
     root, first = smoke
     assert "foot lock" not in (root / "out" / "BENCHMARK.md").read_text()
-    again = _bench_again(smoke, tmp_path / "out", "linear_ar", foot_lock=True)
+    again = _bench_again(smoke, tmp_path / "out", "linear_ar", gifs=True, foot_lock=True)
     entry = again["models"]["linear_ar"]
     drawn, locked = entry["motion"], entry["motion_foot_lock"]
     assert drawn["foot_sliding"] == pytest.approx(
@@ -219,6 +219,8 @@ def test_foot_lock_rows_score_the_locked_samples_beside_the_drawn(smoke, tmp_pat
     assert locked["bone_length_std"] == pytest.approx(drawn["bone_length_std"], rel=1e-3)
     text = (tmp_path / "out" / "BENCHMARK.md").read_text()
     assert "| linear_ar + foot lock |" in text and "they are not the models' samples" in text
+    assert again["plots"]["gifs"]["linear_ar + foot lock"] == "gifs/linear_ar_foot-lock.gif"
+    assert (tmp_path / "out" / "gifs" / "linear_ar_foot-lock.gif").stat().st_size > 0
 
 
 def test_foot_locked_leaves_diverged_samples_as_drawn():

@@ -399,7 +399,8 @@ def _results_head(command, data, data_cfg, dataset, test_info, budget, sizes, na
 
 def _figures(results: dict, samples: dict, out: Path, gt_m, control_m, *, fps, sizes, gifs,
              strict, progress) -> dict:  # fmt: skip
-    """Write the plots and (``gifs``) one GIF per model; the ``plots`` entry."""
+    """Write the plots and (``gifs``) one GIF per model, and for a model scored with
+    ``foot_lock`` a second of the same sample after the foot lock; the ``plots`` entry."""
     figures: dict[str, Any] = {}
     if plots.plot_per_frame_nll(results, out / "nll_per_frame.png"):
         figures["per_frame_nll"] = "nll_per_frame.png"
@@ -416,6 +417,11 @@ def _figures(results: dict, samples: dict, out: Path, gt_m, control_m, *, fps, s
             render_gif(s[0, :n], gt_m[0, :n], control_m[0, :n], out / "gifs" / f"{name}.gif",
                        fps, title)  # fmt: skip
             figures["gifs"][name] = f"gifs/{name}.gif"
+            if results["models"][name].get("motion_foot_lock"):
+                locked = foot_locked(s[:1], control_m[:1])[0, :n]  # as the scored samples
+                path = out / "gifs" / f"{name}_foot-lock.gif"
+                render_gif(locked, gt_m[0, :n], control_m[0, :n], path, fps, f"{title}, foot lock")
+                figures["gifs"][f"{name} + foot lock"] = f"gifs/{name}_foot-lock.gif"
     return figures
 
 
