@@ -124,7 +124,7 @@ PLACEMENT_SCRIPT = textwrap.dedent(
     control = rng.normal(size=(6, 16, 3)).astype(np.float32)
     sampler = make_sampler(exp, 0.8)
     key = jax.random.key(2)
-    par = sampler(rep, key, shard_batch({"control": control[:4]}, mesh)["control"])
+    par = sampler(rep, key, shard_batch(control[:4], mesh))
     assert len(par.sharding.device_set) == 2 and not par.sharding.is_fully_replicated
     np.testing.assert_allclose(par, sampler(model, key, control[:4]), atol=1e-4)
     np.testing.assert_allclose(

@@ -48,22 +48,23 @@ def check_batch_size(batch_size: int, mesh: Mesh) -> None:
         )
 
 
-def shard_batch(batch: dict[str, Any], mesh: Mesh) -> dict[str, jax.Array]:
+def shard_batch(batch: Any, mesh: Mesh) -> Any:
     """Split a global batch (identical on every process) along axis 0 over the mesh.
 
-    Each process puts on each of its own devices exactly the rows that the ``data``
-    sharding gives that device (:func:`jax.make_array_from_callback`), so the processes
-    feed disjoint slices whose union is the global batch, whatever the mesh's device order.
+    ``batch`` is any pytree of arrays (a dict of them, or one array), each with the batch
+    on axis 0; the same pytree of sharded arrays comes back. Each process puts on each of
+    its own devices exactly the rows that the ``data`` sharding gives that device
+    (:func:`jax.make_array_from_callback`), so the processes feed disjoint slices whose
+    union is the global batch, whatever the mesh's device order.
     """
     sharding = batch_sharding(mesh)
-    out = {}
-    for name, value in batch.items():
+
+    def put(value):
         value = np.asarray(value)
         check_batch_size(value.shape[0], mesh)
-        out[name] = jax.make_array_from_callback(
-            value.shape, sharding, lambda index, value=value: value[index]
-        )
-    return out
+        return jax.make_array_from_callback(value.shape, sharding, lambda index: value[index])
+
+    return jax.tree.map(put, batch)
 
 
 def data_parallel(model: Any, rows: int) -> tuple[Any, Mesh | None]:

@@ -110,7 +110,7 @@ def time_sampler(sampler, model, control: np.ndarray, batch: int, key, repeats: 
     c = np.concatenate([control] * reps)[:batch]
     model, mesh = data_parallel(model, batch)  # placed once, outside the timing
     if mesh is not None:
-        c = shard_batch({"control": c}, mesh)["control"]
+        c = shard_batch(c, mesh)
     t0 = time.perf_counter()
     jax.block_until_ready(sampler(model, key, c))
     first = time.perf_counter() - t0
@@ -139,7 +139,7 @@ def sample_in_chunks(sampler, model, control: np.ndarray, key) -> np.ndarray:
         idx = np.arange(start, start + EVAL_CHUNK) % n
         chunk = control[idx]
         if mesh is not None:
-            chunk = shard_batch({"control": chunk}, mesh)["control"]
+            chunk = shard_batch(chunk, mesh)
         x = sampler(model, jax.random.fold_in(key, b), chunk)
         out.append(np.asarray(x, np.float32)[: min(EVAL_CHUNK, n - start)])
     return np.concatenate(out)
