@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from motionflows.config import DataConfig
 from motionflows.data import MotionDataError, Standardizer, load_dataset
 from motionflows.data.controls import PRESETS, load_control, preset
 from motionflows.data.features import ROOT_SIGMA_S, Clip
@@ -176,6 +177,44 @@ def test_styles_keep_only_those_takes_in_every_split():
         _with_styles(named, ("odd", "new"))
     with pytest.raises(MotionDataError, match="data.styles.*name none"):
         load_dataset("synthetic", n_clips=6, seconds=3.0, window=20, cache=False, styles=["x"])
+
+
+def test_train_fraction_keeps_a_nested_share_of_each_groups_training_takes():
+    """``train_fraction``: the training split keeps round(fraction * n) (at least one) of
+    each (performer, content, style) group's n training takes, the first in hash order, so
+    a smaller fraction's takes are a subset of a larger one's; validation and test keep
+    every take, and the standardiser is fitted on the kept takes."""
+    kw = dict(n_clips=24, seconds=3.0, window=20, split_by="performer", cache=False)
+    full = load_dataset("synthetic", **kw)
+    half = load_dataset("synthetic", train_fraction=0.5, **kw)
+    quarter = load_dataset("synthetic", train_fraction=0.25, **kw)
+
+    def names(d, split):
+        return [c.name for c in d.clips[split]]
+
+    assert set(names(quarter, "train")) < set(names(half, "train")) < set(names(full, "train"))
+    for split in ("val", "test"):
+        assert names(half, split) == names(full, split)
+
+    def groups(d):
+        out = {}
+        for c in d.clips["train"]:
+            style = c.meta.get("style")
+            key = (c.meta["performer"], c.meta["content"], style if isinstance(style, str) else "")
+            out[key] = out.get(key, 0) + 1
+        return out
+
+    for key, n in groups(full).items():
+        assert groups(half)[key] == max(1, round(0.5 * n))
+        assert groups(quarter)[key] == max(1, round(0.25 * n))
+    assert half.info["train_fraction"] == 0.5 and full.info["train_fraction"] == 1.0
+    assert half.info["takes"]["train"] == len(half.clips["train"])
+    assert half.split("train").take.size < full.split("train").take.size
+    assert not np.allclose(half.standardizer.pose_mean, full.standardizer.pose_mean)
+    with pytest.raises(ValueError, match=r"data.train_fraction must be .*> 0 and <= 1"):
+        DataConfig(train_fraction=0.0)
+    with pytest.raises(ValueError, match=r"train_fraction must be in \(0, 1\]"):
+        load_dataset("synthetic", train_fraction=1.5, **kw)
 
 
 def test_control_presets():

@@ -88,6 +88,9 @@ class DataConfig:
     tempo_replay: str = "both"
     # keep only the takes of these styles, in every split (metadata "style"; None = all)
     styles: tuple[str, ...] | None = None
+    # keep this share of each performer's, content's and style's training takes (nested
+    # shares, for learning curves over data size; validation and test keep every take)
+    train_fraction: float = 1.0
     # a take shorter than the window: "pad" it with its last pose frozen (valid False
     # there; training sees the frozen tail, scoring uses complete windows only) or "drop" it
     short: str = "pad"
@@ -128,6 +131,7 @@ class DataConfig:
             tempo=self.tempo,
             tempo_replay=self.tempo_replay,
             styles=self.styles,
+            train_fraction=self.train_fraction,
             short=self.short,
         )
 
@@ -198,6 +202,7 @@ DATA_LIMITS: dict[str, _Limit] = {
     "synthetic_seconds": (0.0, 3600.0, False, True),
     "root_sigma_s": (0.0, 60.0, True, True),
     "tempo": (0.1, 10.0, True, True),
+    "train_fraction": (0.0, 1.0, False, True),
 }
 TRAIN_LIMITS: dict[str, _Limit] = {
     "steps": (0, INF, True, True),

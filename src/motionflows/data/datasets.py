@@ -9,6 +9,8 @@ to val / test (at least one each when a group has >= 3 takes); ``split_by="perfo
 holds out whole performers for test (``test_performers``, default the last one in sorted
 order) and val (``val_performers``; default: a take split of the remaining performers).
 ``styles`` keeps only the takes of those styles (metadata ``style``) in every split.
+``train_fraction`` keeps that share of the training takes (for learning curves over data
+size; validation and test keep every take): see :func:`_train_share`.
 Augmentation (``mirror``, ``reverse``, ``tempo``: :mod:`motionflows.data.augment`) is
 applied to the training takes only; the standardiser is fitted on the augmented training
 windows.
@@ -347,6 +349,31 @@ def _with_styles(clips: list[Clip], styles) -> list[Clip]:
     return [c for c in clips if style(c) in set(styles)]
 
 
+def _train_share(clips: list[Clip], fraction: float) -> list[Clip]:
+    """The first ``max(1, round(fraction * n))`` of each (performer, content, style name)
+    group's n training takes in the hash order of their names (as the split by take orders them).
+
+    Stratified, so a share keeps every performer and style in proportion; nested, so the
+    takes of a smaller fraction are among those of a larger one. Returned sorted by name.
+    """
+    fraction = float(fraction)
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"train_fraction must be in (0, 1], got {fraction!r}")
+    if fraction == 1.0:
+        return clips
+    groups: dict[tuple, list[Clip]] = {}
+    for c in clips:
+        style = c.meta.get("style")  # a name (Bandai); synthetic takes carry parameters
+        key = (str(c.meta.get("performer", "")), str(c.meta.get("content", "")))
+        key += (style if isinstance(style, str) else "",)
+        groups.setdefault(key, []).append(c)
+    kept = []
+    for members in groups.values():
+        members = sorted(members, key=lambda c: hashlib.sha1(c.name.encode()).hexdigest())
+        kept += members[: max(1, int(round(fraction * len(members))))]
+    return sorted(kept, key=lambda c: c.name)
+
+
 def _warn_dropped(dropped: list[str], window: int, short: str, min_frames: int | None) -> None:
     """Warn, at the caller of :func:`load_dataset`, about clips too short to be used."""
     if not dropped:
@@ -413,6 +440,7 @@ def load_dataset(
     tempo: float = 1.0,
     tempo_replay: str = "both",
     styles=None,
+    train_fraction: float = 1.0,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -440,6 +468,7 @@ def load_dataset(
     split_clips = _assign_takes(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
+    split_clips["train"] = _train_share(split_clips["train"], train_fraction)
     splits, stats = _split_windows(
         split_clips,
         window,
@@ -464,6 +493,7 @@ def load_dataset(
         "hop": int(hop),
         "split_by": split_by,
         "styles": sorted(styles) if styles else None,
+        "train_fraction": float(train_fraction),
         "augment": {
             "mirror": bool(mirror),
             "reverse": bool(reverse),
