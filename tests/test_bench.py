@@ -259,6 +259,28 @@ def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(sm
     assert "other training augmentation" not in (root / "out" / "BENCHMARK.md").read_text()
 
 
+def test_a_share_of_the_training_takes_set_for_one_model_is_scored_on_the_same_frames(
+    smoke, tmp_path
+):
+    """``--set data.train_fraction=0.5``: the model trains on half its training takes (its
+    own standardiser), is validated and scored on the bench's frames, and the report says
+    which share it saw."""
+    root, first = smoke
+    again = _bench_again(smoke, tmp_path / "out", "linear_ar", ["data.train_fraction=0.5"])
+    entry = again["models"]["linear_ar"]
+    assert not entry["reused"] and entry["config"]["data"]["train_fraction"] == 0.5
+    windows = [
+        e["likelihood"]["window"]["test"]["windows"] for e in (entry, first["models"]["linear_ar"])
+    ]
+    assert windows[0] == windows[1]  # the bench's test frames, not a share of them
+    run = _run_dir(root, entry)
+    meta = json.loads((run / "config.json").read_text())["config"]["data"]
+    assert meta["train_fraction"] == 0.5
+    report = (tmp_path / "out" / "BENCHMARK.md").read_text()
+    assert "a share of the training takes: linear_ar (train_fraction 0.5)" in report
+    assert "share of the training takes" not in (root / "out" / "BENCHMARK.md").read_text()
+
+
 def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_path):
     """A field added later (here ``data.tempo``) takes its default for old runs, so the
     bench does not retrain them; a saved value other than the default still differs."""

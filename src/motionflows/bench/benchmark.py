@@ -110,8 +110,9 @@ def _obtain(
     exp = load_experiment(name)
     config, prov = bench_config(name, budget, data, exp, overrides)
     entry.update(prov, config=to_dict(config))
-    # --set data.tempo & co. (TRAINING_AUGMENTATION): this model trains on its own
-    # augmented takes, and is scored on the bench's frames in its own standardised units
+    # --set data.tempo & co. (TRAINING_DATA_SETTABLE): this model trains on its own
+    # training takes (augmented, or a share of them), and is scored on the bench's frames
+    # in its own standardised units
     own_training_data = config.data != data
     c0 = time.process_time()
     run_dir, reused, secs = obtain_run(

@@ -170,6 +170,12 @@ the same frames: each preset keeps its own, and ``motionflows bench --set`` may 
 TRAINING_AUGMENTATION: tuple[str, ...] = tuple(f"data.{k}" for k in AUGMENTATION_FIELDS)
 """The dotted names of :data:`AUGMENTATION_FIELDS`, as ``motionflows bench --set`` takes them."""
 
+TRAINING_DATA_SETTABLE: tuple[str, ...] = (*TRAINING_AUGMENTATION, "data.train_fraction")
+"""The data fields ``motionflows bench --set`` takes: they change the training split only
+(its augmentation, and ``train_fraction``, the share of training takes a model sees), so the
+model is still validated and scored on the bench's frames. A preset keeps its own
+augmentation; every preset trains on all training takes unless ``--set`` says otherwise."""
+
 
 def bench_config(
     model: str, budget: str, data: DataConfig, exp=None, overrides: Sequence[str] = ()
@@ -183,7 +189,7 @@ def bench_config(
     frames in its own standardised units), then the ``key=value`` ``overrides``
     (``motionflows bench --set``) that name a field of this model's config; the others are
     listed in ``provenance["overrides_skipped"]``. Of the data fields only
-    :data:`TRAINING_AUGMENTATION` may be set.
+    :data:`TRAINING_DATA_SETTABLE` may be set.
     Returns (config, provenance dict).
     """
     if budget not in BUDGETS:
@@ -206,11 +212,11 @@ def bench_config(
         raise RunError(f"{exp.__name__}.Config cannot select model {model!r}: {err}") from None
     for item in overrides:
         key = item.split("=", 1)[0].strip()
-        if key.startswith("data.") and key not in TRAINING_AUGMENTATION:
+        if key.startswith("data.") and key not in TRAINING_DATA_SETTABLE:
             raise RunError(
                 f"--set {item}: the bench gives every model the same data; choose them with "
-                "--data and --test-data (of the data fields, --set takes only the training "
-                f"augmentation: {', '.join(TRAINING_AUGMENTATION)})"
+                "--data and --test-data (of the data fields, --set takes only those of the "
+                f"training split: {', '.join(TRAINING_DATA_SETTABLE)})"
             )
     applied = [item for item in overrides if has_override_key(config, item)]
     # "auto" precision resolved here: runs are found by the precision they were trained in

@@ -253,8 +253,9 @@ def _header(results: dict) -> list[str]:
 
 
 def _own_augmentation(results: dict) -> str:
-    """A sentence naming the models trained with other training augmentation than the
-    bench's data (their preset's, or ``--set data.tempo=...``); "" if none."""
+    """Sentences naming the models trained with other training augmentation than the
+    bench's data (their preset's, or ``--set data.tempo=...``) or on a share of its
+    training takes (``--set data.train_fraction=...``); "" if none."""
     from motionflows.bench.budgets import AUGMENTATION_FIELDS
 
     bench = results["data"]["config"]
@@ -266,14 +267,28 @@ def _own_augmentation(results: dict) -> str:
         ]
         if diff:
             own.append(f"{name} ({', '.join(diff)})")
-    if not own:
-        return ""
-    return (
-        " Trained with other training augmentation: "
-        + "; ".join(own)
-        + ". The augmented takes enter that model's training only; it is validated and "
-        "scored on the same windows, standardised by its own run."
-    )
+    shares = [
+        f"{name} (train_fraction {fraction})"
+        for name, entry in results.get("models", {}).items()
+        if (fraction := ((entry.get("config") or {}).get("data") or {}).get("train_fraction", 1.0))
+        != 1.0
+    ]
+    text = ""
+    if own:
+        text += (
+            " Trained with other training augmentation: "
+            + "; ".join(own)
+            + ". The augmented takes enter that model's training only; it is validated and "
+            "scored on the same windows, standardised by its own run."
+        )
+    if shares:
+        text += (
+            " Trained on a share of the training takes: "
+            + "; ".join(shares)
+            + " (of each performer's, content's and style's takes, `data.train_fraction`); "
+            "validated and scored on the same windows, standardised by its own run."
+        )
+    return text
 
 
 def _data_section(results: dict) -> list[str]:
