@@ -268,7 +268,7 @@ def _own_augmentation(results: dict) -> str:
         if diff:
             own.append(f"{name} ({', '.join(diff)})")
     shares = [
-        f"{name} (train_fraction {fraction})"
+        f"{name} {fraction:g}"
         for name, entry in results.get("models", {}).items()
         if (fraction := ((entry.get("config") or {}).get("data") or {}).get("train_fraction", 1.0))
         != 1.0
@@ -283,10 +283,10 @@ def _own_augmentation(results: dict) -> str:
         )
     if shares:
         text += (
-            " Trained on a share of the training takes: "
+            " Trained on a share of the training takes (`data.train_fraction`, the same "
+            "share of each performer's, content's and style's takes): "
             + "; ".join(shares)
-            + " (of each performer's, content's and style's takes, `data.train_fraction`); "
-            "validated and scored on the same windows, standardised by its own run."
+            + ". It is validated and scored on the same windows, standardised by its own run."
         )
     return text
 
