@@ -278,6 +278,7 @@ def test_a_share_of_the_training_takes_set_for_one_model_is_scored_on_the_same_f
     assert meta["train_fraction"] == 0.5
     report = (tmp_path / "out" / "BENCHMARK.md").read_text()
     assert "style's takes): linear_ar 0.5. It is validated" in report
+    assert "training windows, some of which it never saw" in report
     assert "share of the training takes" not in (root / "out" / "BENCHMARK.md").read_text()
 
 

@@ -286,7 +286,9 @@ def _own_augmentation(results: dict) -> str:
             " Trained on a share of the training takes (`data.train_fraction`, the same "
             "share of each performer's, content's and style's takes): "
             + "; ".join(shares)
-            + ". It is validated and scored on the same windows, standardised by its own run."
+            + ". It is validated and scored on the same windows, standardised by its own run;"
+            " its train NLL column scores the bench's training windows, some of which it "
+            "never saw."
         )
     return text
 
