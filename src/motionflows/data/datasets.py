@@ -70,6 +70,12 @@ __all__ = [  # the source names stay importable from here (they lived in this mo
 SPLITS = ("train", "val", "test")
 
 
+def _hash_order(name: str) -> str:
+    """The sort key that orders takes for the split by take and for ``train_fraction``: a
+    hash of the take's name (stable, unrelated to recording order)."""
+    return hashlib.sha1(name.encode()).hexdigest()
+
+
 def _split_names(
     clips: list[Clip],
     split_by: str,
@@ -81,7 +87,7 @@ def _split_names(
     def by_take(names_groups: dict[str, list[str]]) -> dict[str, list[str]]:
         out = {s: [] for s in SPLITS}
         for group in sorted(names_groups):
-            names = sorted(names_groups[group], key=lambda n: hashlib.sha1(n.encode()).hexdigest())
+            names = sorted(names_groups[group], key=_hash_order)
             n = len(names)
             n_test = int(round(n * test_frac))
             n_val = int(round(n * val_frac))
@@ -326,6 +332,13 @@ def _split_windows(
     return splits, stats
 
 
+def _style_name(clip: Clip) -> str | None:
+    """The take's style name (Bandai's ``style`` metadata), None where it has none
+    (synthetic takes carry their style's parameters there, not a name)."""
+    style = clip.meta.get("style")
+    return style if isinstance(style, str) else None
+
+
 def _with_styles(clips: list[Clip], styles) -> list[Clip]:
     """The clips whose metadata ``style`` (a name, as the Bandai takes have) is in
     ``styles``; None or empty keeps all. Raise, naming the styles there are, if one is
@@ -333,12 +346,7 @@ def _with_styles(clips: list[Clip], styles) -> list[Clip]:
     if not styles:
         return clips
     styles = (styles,) if isinstance(styles, str) else tuple(styles)
-
-    def style(c: Clip) -> str | None:
-        s = c.meta.get("style")
-        return s if isinstance(s, str) else None
-
-    have = sorted({s for c in clips if (s := style(c)) is not None})
+    have = sorted({s for c in clips if (s := _style_name(c)) is not None})
     unknown = sorted(set(styles) - set(have))
     if unknown:
         there = f"the styles of these takes are {have}" if have else "these takes name none"
@@ -346,7 +354,7 @@ def _with_styles(clips: list[Clip], styles) -> list[Clip]:
             f"data.styles: no take has style {unknown}; {there}. Give styles from that list, "
             "or none to keep every take"
         )
-    return [c for c in clips if style(c) in set(styles)]
+    return [c for c in clips if _style_name(c) in set(styles)]
 
 
 def _train_share(clips: list[Clip], fraction: float) -> list[Clip]:
@@ -363,13 +371,11 @@ def _train_share(clips: list[Clip], fraction: float) -> list[Clip]:
         return clips
     groups: dict[tuple, list[Clip]] = {}
     for c in clips:
-        style = c.meta.get("style")  # a name (Bandai); synthetic takes carry parameters
-        key = (str(c.meta.get("performer", "")), str(c.meta.get("content", "")))
-        key += (style if isinstance(style, str) else "",)
+        key = (str(c.meta.get("performer", "")), str(c.meta.get("content", "")), _style_name(c))
         groups.setdefault(key, []).append(c)
     kept = []
     for members in groups.values():
-        members = sorted(members, key=lambda c: hashlib.sha1(c.name.encode()).hexdigest())
+        members = sorted(members, key=lambda c: _hash_order(c.name))
         kept += members[: max(1, int(round(fraction * len(members))))]
     return sorted(kept, key=lambda c: c.name)
 
