@@ -252,7 +252,7 @@ def _header(results: dict) -> list[str]:
     ]
 
 
-def _own_augmentation(results: dict) -> str:
+def _own_training_data(results: dict) -> str:
     """Sentences naming the models trained with other training augmentation than the
     bench's data (their preset's, or ``--set data.tempo=...``) or on a share of its
     training takes (``--set data.train_fraction=...``); "" if none."""
@@ -306,7 +306,7 @@ def _data_section(results: dict) -> list[str]:
         f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
         f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
         "trained on these takes and scored on the same test windows and controls; windows "
-        "padded past the end of a short take are not scored." + _own_augmentation(results) + "\n",
+        "padded past the end of a short take are not scored." + _own_training_data(results) + "\n",
     ]
     test = results.get("test_data") or {}
     if test.get("spec"):
