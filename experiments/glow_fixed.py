@@ -57,6 +57,7 @@ class Config:
     compute_dtype: str = "auto"  # coupling nets' conv precision: "auto" | "float32" | "bfloat16"
     coupling: str = "affine"  # "affine" (paper) | "additive" (volume-preserving, never amplifies)
     coupling_eps: float = 1e-6  # floor of the affine coupling scale
+    residual: bool = False  # flow the first frame and the frame-to-frame changes (our option)
 
     def __post_init__(self):
         if self.levels < 1 or self.K < 1 or self.hidden < 1:
@@ -186,6 +187,7 @@ def build(config: Config, *, key: jax.Array) -> Glow:
         coupling=config.coupling,
         coupling_eps=config.coupling_eps,
         length=config.data.window,
+        residual=config.residual,
         rngs=nnx.Rngs(params=key),
     )
 

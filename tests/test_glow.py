@@ -37,11 +37,14 @@ def _perturb(model, key, scale=0.1):
     return nnx.merge(graphdef, jax.tree.unflatten(treedef, leaves), rest)
 
 
-def _tiny(key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard", coupling="affine"):
+def _tiny(
+    key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard", coupling="affine",
+    residual=False,
+):  # fmt: skip
     k1, k2 = jax.random.split(key)
     model = Glow(
         pose_dim, levels=2, K=2, hidden=8, control_dim=control_dim, prior=prior,
-        coupling=coupling, rngs=nnx.Rngs(k1),
+        coupling=coupling, residual=residual, rngs=nnx.Rngs(k1),
     )  # fmt: skip
     return _perturb(model, k2)
 
@@ -78,6 +81,12 @@ def additive():
     return _tiny(jax.random.key(13), coupling="additive")
 
 
+@pytest.fixture(scope="module")
+def residual():
+    """Conditional, learned prior, flowing the first frame and the changes; perturbed."""
+    return _tiny(jax.random.key(14), prior="learned", residual=True)
+
+
 def test_round_trip_and_init(conditional, key):
     model = conditional
     kx, kc, kz = jax.random.split(key, 3)
@@ -102,12 +111,13 @@ def test_round_trip_and_init(conditional, key):
     np.testing.assert_array_equal(parts[0][:, :, 0], z[:, 0 : 4 * 63 : 63])
 
 
-@pytest.mark.parametrize("which", ["conditional", "unconditional", "additive"])
+@pytest.mark.parametrize("which", ["conditional", "unconditional", "additive", "residual"])
 def test_log_prob_matches_jacobian(which, request, key):
     """log p(x) = log N(f^-1(x)) + log|det J| with J from jax.jacfwd over the flat window.
 
     The fixtures (learned prior with control; standard prior without; additive couplings
-    with control and the standard prior) have perturbed, non-trivial parameters. D = 63 is
+    with control and the standard prior; the learned prior over the changes) have
+    perturbed, non-trivial parameters. D = 63 is
     odd: the coupling halves of the squeezed 126 channels are 63 / 63 and so are the split's
     kept / factored parts.
     """
@@ -136,6 +146,55 @@ def test_log_prob_matches_jacobian(which, request, key):
     np.testing.assert_allclose(got, base + logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(log_det, logabs, rtol=1e-4, atol=5e-3)
     np.testing.assert_allclose(fwd_log_det, -log_det, rtol=1e-4, atol=5e-3)
+
+
+def test_residual_flows_the_first_frame_and_the_changes(residual, key):
+    """``residual=True`` is the plain multi-scale flow applied to [a(x_0), b(x_t - x_{t-1})]
+    (a, b: its two ActNorms); the log-density gains exactly their log-dets, and decoding
+    sums the changes back up."""
+    model = residual
+    kx, kc, kz = jax.random.split(key, 3)
+    x = 1.5 + 2.0 * jax.random.normal(kx, (3, 8, POSE_DIM))
+    c = jax.random.normal(kc, (3, 8, CONTROL_DIM))
+    a_bias, a_logs = np.asarray(model.first_norm.bias[...]), np.asarray(model.first_norm.logs[...])
+    b_bias, b_logs = np.asarray(model.change_norm.bias[...]), np.asarray(model.change_norm.logs[...])
+    assert np.ptp(a_logs) > 0 and np.ptp(b_logs) > 0  # non-trivial
+
+    def normalised(x):
+        x = np.asarray(x)
+        first = (x[:, :1] + a_bias) * np.exp(a_logs)
+        return np.concatenate([first, (np.diff(x, axis=-2) + b_bias) * np.exp(b_logs)], axis=-2)
+
+    plain = nnx.clone(model)
+    plain.residual = False  # the same flows, without the change of variables in front
+    y = normalised(x)
+    np.testing.assert_allclose(encode(model, x, c), encode(plain, y, c), atol=1e-4, rtol=1e-4)
+    log_det = np.sum(a_logs) + 7 * np.sum(b_logs)
+    np.testing.assert_allclose(
+        log_prob(model, x, c), log_prob(plain, y, c) + log_det, rtol=1e-5, atol=1e-3
+    )
+    z = jax.random.normal(kz, (3, 8 * POSE_DIM))
+    np.testing.assert_allclose(
+        normalised(decode(model, z, c)), decode(plain, z, c), atol=1e-4, rtol=1e-4
+    )
+
+
+def test_residual_init_normalises_the_first_frames_and_the_changes(residual, key):
+    """Data-dependent init sets each ActNorm from its own part: the first frames and the
+    changes both leave it zero-mean and unit-std per channel, though a change is far
+    smaller than a pose."""
+    kx, kc = jax.random.split(key)
+    steps = jnp.cumsum(0.05 * jax.random.normal(kx, (16, 8, POSE_DIM)), axis=-2)
+    x = 3.0 + steps + jnp.linspace(0.0, 2.0, POSE_DIM)
+    c = jax.random.normal(kc, (16, 8, CONTROL_DIM))
+    fresh = initialize_from_data(residual, x, context=c)
+    y, _ = fresh._changes_from_poses(x)
+    y = np.asarray(y)
+    for part in (y[:, :1], y[:, 1:]):
+        flat = part.reshape(-1, POSE_DIM)
+        np.testing.assert_allclose(flat.mean(0), 0.0, atol=1e-4)
+        np.testing.assert_allclose(flat.std(0), 1.0, atol=1e-3)
+    np.testing.assert_allclose(decode(fresh, encode(fresh, x, c), c), x, atol=2e-4, rtol=1e-4)
 
 
 def test_additive_couplings_preserve_volume(additive, key):

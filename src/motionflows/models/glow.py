@@ -28,6 +28,14 @@ Latents. ``encode`` returns one flat array (..., T * D): the factored parts in l
 (each flattened time-major from (T_l, d_l)) followed by the last level's output. Use
 :meth:`Glow.latent_parts` to cut it into its (..., T_l, d_l) pieces.
 
+Flowing the change (``residual=True``, our option, not the paper's). Before the first
+squeeze the window is taken to its first frame and its frame-to-frame changes,
+:class:`motionflows.bijectors.Difference` (u_0 = x_0, u_t = x_t - x_{t-1}, log-det 0), and
+each part gets its own ActNorm (``first_norm`` on u_0, ``change_norm`` on u_1..u_{T-1}),
+since a change is several times smaller than a pose: log-det sum(logs_first) + (T - 1)
+sum(logs_change). The multi-scale flow above then models the normalised changes, and a
+sample is their cumulative sum. MoGlow's ``residual`` is the same idea one frame at a time.
+
 Likelihood: the model is the distribution ``Transformed(Normal((T * D,)), glow)``
 (:meth:`Glow.distribution`), so log p(x | c) = log N(eps; 0, I) + log|det d eps / d x| in
 the units of x (the model is trained on standardised data, so those are standardised units).
@@ -46,6 +54,7 @@ from motionflows.bijectors import (
     AdditiveCoupling,
     AffineCoupling,
     Chain,
+    Difference,
     InvertibleLinear,
     Scan,
     Split,
@@ -103,6 +112,9 @@ class Glow(nnx.Module):
       length: the window length T that unconditional ``sample`` draws by default (a
         multiple of 2**levels; None = 80 frames, 4 s at 20 fps); ``log_prob`` accepts any
         such T.
+      residual: flow the window's first frame and its frame-to-frame changes, each part
+        with its own ActNorm, instead of the poses (module docstring); exact, log-det of
+        the ActNorms only.
       rngs: ``nnx.Rngs`` for parameter initialisation.
 
     Parameters start so that every coupling is a fixed scaling and every learned prior is
@@ -123,6 +135,7 @@ class Glow(nnx.Module):
         coupling: str = "affine",
         coupling_eps: float = 1e-6,
         length: int | None = None,
+        residual: bool = False,
         rngs: nnx.Rngs,
         steps: int | None = None,
     ):
@@ -176,6 +189,11 @@ class Glow(nnx.Module):
         self.flows = nnx.List(flows)
         self.splits = nnx.List(splits)
         self.priors = nnx.List(priors)
+        self.residual = bool(residual)
+        if self.residual:  # built last: they draw nothing, so the flows' draws do not move
+            self.difference = Difference(self.pose_dim)
+            self.first_norm = ActNorm(self.pose_dim)
+            self.change_norm = ActNorm(self.pose_dim)
 
     def _step_factory(self, channels: int, context_channels: int):
         hidden, eps, dtype = self.hidden, self.coupling_eps, self.compute_dtype
@@ -312,6 +330,8 @@ class Glow(nnx.Module):
         batch, length = x.shape[:-2], x.shape[-2]
         c = self._check_control(context, batch, length)
         h, total, parts = x, jnp.zeros(batch, jnp.float32), []
+        if self.residual:
+            h, total = self._changes_from_poses(x)
         for level in range(self.levels):
             h = squeeze_time(h)
             c = None if c is None else squeeze_time(c)
@@ -351,7 +371,24 @@ class Glow(nnx.Module):
             h, ld = self.flows[level].forward_and_log_det(h, context=c)
             total = total + ld
             h = unsqueeze_time(h)
+        if self.residual:
+            h, ld = self._poses_from_changes(h)
+            total = total + ld
         return h, total
+
+    def _changes_from_poses(self, x: Array) -> tuple[Array, Array]:
+        """``residual``: x (..., T, D) -> normalised [u_0, u_1..u_{T-1}] and their log-det."""
+        u, _ = self.difference.inverse_and_log_det(x)
+        first, ld_first = self.first_norm.inverse_and_log_det(u[..., :1, :])
+        change, ld_change = self.change_norm.inverse_and_log_det(u[..., 1:, :])
+        return jnp.concatenate([first, change], axis=-2), ld_first + ld_change
+
+    def _poses_from_changes(self, h: Array) -> tuple[Array, Array]:
+        """The inverse of :meth:`_changes_from_poses`: the changes' cumulative sum."""
+        first, ld_first = self.first_norm.forward_and_log_det(h[..., :1, :])
+        change, ld_change = self.change_norm.forward_and_log_det(h[..., 1:, :])
+        x, _ = self.difference.forward_and_log_det(jnp.concatenate([first, change], axis=-2))
+        return x, ld_first + ld_change
 
     # ------------------------------------------------------------------ user-facing API
 
