@@ -58,6 +58,7 @@ class Config:
     coupling: str = "affine"  # "affine" (paper) | "additive" (volume-preserving, never amplifies)
     coupling_eps: float = 1e-6  # floor of the affine coupling scale
     residual: bool = False  # flow the first frame and the frame-to-frame changes (our option)
+    residual_decay: float = 1.0  # with residual: u_t = x_t - a x_{t-1}, a in (0, 1]
 
     def __post_init__(self):
         if self.levels < 1 or self.K < 1 or self.hidden < 1:
@@ -75,6 +76,10 @@ class Config:
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
         check_compute_dtype(self.compute_dtype)
+        if not 0.0 < self.residual_decay <= 1.0:
+            raise ValueError(f"residual_decay must be in (0, 1], got {self.residual_decay}")
+        if self.residual_decay != 1.0 and not self.residual:
+            raise ValueError("residual_decay needs residual=true (it shapes the change)")
 
 
 PRESETS: dict[str, Config] = {
@@ -188,6 +193,7 @@ def build(config: Config, *, key: jax.Array) -> Glow:
         coupling_eps=config.coupling_eps,
         length=config.data.window,
         residual=config.residual,
+        residual_decay=config.residual_decay,
         rngs=nnx.Rngs(params=key),
     )
 

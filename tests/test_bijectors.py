@@ -144,6 +144,7 @@ REGISTRY: dict[str, Case] = {
     "scan": Case(lambda r: bj.Scan(_glow_step, K_STEPS, rngs=r), uses_context=True),
     "scan_sequence": Case(lambda r: bj.Scan(_sequence_step, K_STEPS, rngs=r), uses_context=True),
     "difference": Case(lambda r: bj.Difference(D)),
+    "leaky_difference": Case(lambda r: bj.Difference(D, decay=0.8)),
     "squeeze": Case(
         lambda r: bj.Squeeze(2),
         steps=False,
@@ -155,7 +156,9 @@ REGISTRY: dict[str, Case] = {
 NAMES = sorted(REGISTRY)
 CONTEXT_NAMES = [n for n in NAMES if REGISTRY[n].uses_context]
 STEP_NAMES = [n for n in NAMES if REGISTRY[n].steps]
-VOLUME_PRESERVING = {"permute", "reverse", "squeeze", "additive_coupling_context", "difference"}
+VOLUME_PRESERVING = {
+    "permute", "reverse", "squeeze", "additive_coupling_context", "difference", "leaky_difference"
+}  # fmt: skip
 
 
 @functools.cache
@@ -462,6 +465,22 @@ def test_frames_of_frame_mixing_bijectors_raise():
         built("invertible_linear").forward_step(jnp.zeros((3, D + 1)))
     with pytest.raises(ValueError, match="one frame"):
         bj.ActNorm(D).inverse_step(jnp.float32(1.0))
+
+
+def test_leaky_difference_forgets_an_error_geometrically():
+    """decay a: u_t = x_t - a x_{t-1}, so one changed u_k moves x_t by a^(t-k) (t >= k),
+    where the plain difference moves every later frame by the whole change."""
+    x = jax.random.normal(jax.random.key(3), (6, 2))
+    bump = jnp.zeros((6, 2)).at[1].set(1.0)
+    for decay, expected in ((0.5, 0.5 ** np.arange(5)), (1.0, np.ones(5))):
+        diff = bj.Difference(2, decay=decay)
+        u = diff.inverse_and_log_det(x)[0]
+        close(u[1:], x[1:] - decay * x[:-1], 1e-6)
+        moved = diff.forward_and_log_det(u + bump)[0] - x
+        close(moved[1:, 0], expected, 1e-5)
+        close(moved[0], jnp.zeros(2), 1e-6)
+    with pytest.raises(ValueError, match="0 < decay <= 1"):
+        bj.Difference(2, decay=0.0)
 
 
 def test_difference_with_move_names_the_missing_context_on_every_path():

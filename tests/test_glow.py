@@ -39,12 +39,12 @@ def _perturb(model, key, scale=0.1):
 
 def _tiny(
     key, *, pose_dim=POSE_DIM, control_dim=CONTROL_DIM, prior="standard", coupling="affine",
-    residual=False,
+    residual=False, residual_decay=1.0,
 ):  # fmt: skip
     k1, k2 = jax.random.split(key)
     model = Glow(
         pose_dim, levels=2, K=2, hidden=8, control_dim=control_dim, prior=prior,
-        coupling=coupling, residual=residual, rngs=nnx.Rngs(k1),
+        coupling=coupling, residual=residual, residual_decay=residual_decay, rngs=nnx.Rngs(k1),
     )  # fmt: skip
     return _perturb(model, k2)
 
@@ -87,6 +87,12 @@ def residual():
     return _tiny(jax.random.key(14), prior="learned", residual=True)
 
 
+@pytest.fixture(scope="module")
+def leaky():
+    """As ``residual``, with the leaky change u_t = x_t - 0.9 x_{t-1}."""
+    return _tiny(jax.random.key(15), prior="learned", residual=True, residual_decay=0.9)
+
+
 def test_round_trip_and_init(conditional, key):
     model = conditional
     kx, kc, kz = jax.random.split(key, 3)
@@ -111,7 +117,7 @@ def test_round_trip_and_init(conditional, key):
     np.testing.assert_array_equal(parts[0][:, :, 0], z[:, 0 : 4 * 63 : 63])
 
 
-@pytest.mark.parametrize("which", ["conditional", "unconditional", "additive", "residual"])
+@pytest.mark.parametrize("which", ["conditional", "unconditional", "additive", "residual", "leaky"])
 def test_log_prob_matches_jacobian(which, request, key):
     """log p(x) = log N(f^-1(x)) + log|det J| with J from jax.jacfwd over the flat window.
 
@@ -156,8 +162,8 @@ def test_residual_flows_the_first_frame_and_the_changes(residual, key):
     kx, kc, kz = jax.random.split(key, 3)
     x = 1.5 + 2.0 * jax.random.normal(kx, (3, 8, POSE_DIM))
     c = jax.random.normal(kc, (3, 8, CONTROL_DIM))
-    a_bias, a_logs = np.asarray(model.first_norm.bias[...]), np.asarray(model.first_norm.logs[...])
-    b_bias, b_logs = np.asarray(model.change_norm.bias[...]), np.asarray(model.change_norm.logs[...])
+    a_bias, a_logs = (np.asarray(v[...]) for v in (model.first_norm.bias, model.first_norm.logs))
+    b_bias, b_logs = (np.asarray(v[...]) for v in (model.change_norm.bias, model.change_norm.logs))
     assert np.ptp(a_logs) > 0 and np.ptp(b_logs) > 0  # non-trivial
 
     def normalised(x):

@@ -30,15 +30,28 @@ class Difference(Bijector):
     rest in the world has u_t = 0). Any function of x_{t-1} and the context keeps the
     Jacobian unit triangular: log|det| = 0. The latent -> data sequence pass is then a
     ``lax.scan`` over frames instead of a cumulative sum.
+
+    ``decay`` a in (0, 1], optional: u_t = x_t - a * x_{t-1} (a leaky difference; log|det|
+    still 0). Summed back, x_t = sum_k a^(t-k) u_k, so an error in one u_k fades with time
+    constant 1 / (1 - a) frames instead of staying in every later frame.
     """
 
-    def __init__(self, num_channels: int, move: Callable[[Array, Array], Array] | None = None):
+    def __init__(
+        self,
+        num_channels: int,
+        move: Callable[[Array, Array], Array] | None = None,
+        *,
+        decay: float = 1.0,
+    ):
         if int(num_channels) < 1:
             raise ValueError(f"Difference needs num_channels >= 1, got {num_channels}")
         if move is not None and not callable(move):
             raise ValueError(f"Difference: move must be callable, got {type(move).__name__}")
+        if not 0.0 < float(decay) <= 1.0:
+            raise ValueError(f"Difference needs 0 < decay <= 1, got {decay}")
         self.num_channels = int(num_channels)
         self.move = move
+        self.decay = float(decay)
 
     def _require_context(self, context: Array | None) -> Array:
         if context is None:
@@ -49,9 +62,9 @@ class Difference(Bijector):
         return context
 
     def _moved(self, previous: Array, context: Array | None) -> Array:
-        if self.move is None:
-            return previous
-        return self.move(previous, self._require_context(context))
+        if self.move is not None:
+            previous = self.move(previous, self._require_context(context))
+        return previous if self.decay == 1.0 else self.decay * previous
 
     def _zero(self, x: Array) -> Array:
         return jnp.zeros(x.shape[:-2], jnp.float32)
@@ -63,13 +76,16 @@ class Difference(Bijector):
 
     def forward_and_log_det(self, x, *, context=None):
         check_event(x, self.num_channels, "Difference")
-        if self.move is None:
+        if self.move is None and self.decay == 1.0:
             return jnp.cumsum(x, axis=-2), self._zero(x)
-        context = self._require_context(context)
+        if self.move is not None:
+            context = self._require_context(context)
+        elif context is None:
+            context = jnp.zeros(x.shape[:-1] + (0,), x.dtype)  # nothing to move by
 
         def body(previous, inputs):
             u_t, c_t = inputs
-            y_t = u_t + self.move(previous, c_t)
+            y_t = u_t + self._moved(previous, c_t)
             return y_t, y_t
 
         frames_first = (jnp.moveaxis(x, -2, 0), jnp.moveaxis(context, -2, 0))

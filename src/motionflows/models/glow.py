@@ -115,6 +115,9 @@ class Glow(nnx.Module):
       residual: flow the window's first frame and its frame-to-frame changes, each part
         with its own ActNorm, instead of the poses (module docstring); exact, log-det of
         the ActNorms only.
+      residual_decay: with ``residual``, the changes are u_t = x_t - a x_{t-1} with this
+        a in (0, 1] (``Difference(decay=a)``): 1 the plain change; below 1 a drawn
+        change's error fades with time constant 1 / (1 - a) frames instead of staying.
       rngs: ``nnx.Rngs`` for parameter initialisation.
 
     Parameters start so that every coupling is a fixed scaling and every learned prior is
@@ -136,6 +139,7 @@ class Glow(nnx.Module):
         coupling_eps: float = 1e-6,
         length: int | None = None,
         residual: bool = False,
+        residual_decay: float = 1.0,
         rngs: nnx.Rngs,
         steps: int | None = None,
     ):
@@ -153,6 +157,8 @@ class Glow(nnx.Module):
             raise ValueError(f"Glow: prior must be one of {PRIORS}, got {prior!r}")
         if coupling not in COUPLINGS:
             raise ValueError(f"Glow: coupling must be one of {COUPLINGS}, got {coupling!r}")
+        if float(residual_decay) != 1.0 and not residual:
+            raise ValueError("Glow: residual_decay needs residual=True (it shapes the change)")
         self.pose_dim = int(pose_dim)
         self.levels = int(levels)
         self.K = int(K)
@@ -191,7 +197,7 @@ class Glow(nnx.Module):
         self.priors = nnx.List(priors)
         self.residual = bool(residual)
         if self.residual:  # built last: they draw nothing, so the flows' draws do not move
-            self.difference = Difference(self.pose_dim)
+            self.difference = Difference(self.pose_dim, decay=residual_decay)
             self.first_norm = ActNorm(self.pose_dim)
             self.change_norm = ActNorm(self.pose_dim)
 
