@@ -34,7 +34,10 @@ squeeze the window is taken to its first frame and its frame-to-frame changes,
 each part gets its own ActNorm (``first_norm`` on u_0, ``change_norm`` on u_1..u_{T-1}),
 since a change is several times smaller than a pose: log-det sum(logs_first) + (T - 1)
 sum(logs_change). The multi-scale flow above then models the normalised changes, and a
-sample is their cumulative sum. MoGlow's ``residual`` is the same idea one frame at a time.
+sample is their cumulative sum. ``residual_decay`` a < 1 takes the leaky change u_t = x_t -
+a x_{t-1} instead (still log-det 0), whose sum x_t = sum_k a^(t-k) u_k forgets a drawn
+change's error within ~1 / (1 - a) frames. MoGlow's ``residual`` is the same idea one frame
+at a time.
 
 Likelihood: the model is the distribution ``Transformed(Normal((T * D,)), glow)``
 (:meth:`Glow.distribution`), so log p(x | c) = log N(eps; 0, I) + log|det d eps / d x| in
@@ -390,7 +393,7 @@ class Glow(nnx.Module):
         return jnp.concatenate([first, change], axis=-2), ld_first + ld_change
 
     def _poses_from_changes(self, h: Array) -> tuple[Array, Array]:
-        """The inverse of :meth:`_changes_from_poses`: the changes' cumulative sum."""
+        """The inverse of :meth:`_changes_from_poses`: the changes summed back up."""
         first, ld_first = self.first_norm.forward_and_log_det(h[..., :1, :])
         change, ld_change = self.change_norm.forward_and_log_det(h[..., 1:, :])
         x, _ = self.difference.forward_and_log_det(jnp.concatenate([first, change], axis=-2))
