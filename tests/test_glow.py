@@ -123,8 +123,8 @@ def test_log_prob_matches_jacobian(which, request, key):
 
     The fixtures (learned prior with control; standard prior without; additive couplings
     with control and the standard prior; the learned prior over the plain and the leaky
-    changes) have perturbed, non-trivial parameters. D = 63 is odd: the coupling halves of the squeezed 126 channels are 63 / 63 and so are the split's
-    kept / factored parts.
+    changes) have perturbed, non-trivial parameters. D = 63 is odd: the coupling halves of
+    the squeezed 126 channels are 63 / 63 and so are the split's kept / factored parts.
     """
     model = request.getfixturevalue(which)
     t, d = 4, POSE_DIM
