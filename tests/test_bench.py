@@ -301,6 +301,29 @@ def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_pa
     assert bench.find_run(tmp_path / "runs", prov["experiment"], config) is None
 
 
+def test_a_run_trained_on_other_devices_is_not_reused(smoke, tmp_path):
+    """Data-parallel training on N devices sums the batch in another order, so its run is
+    another training, not this one: the bench reuses only a run trained on as many devices
+    as it has (a run saved before the count was recorded counts as one device)."""
+    root, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke")
+    exp = bench.load_experiment("linear_ar")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    run = _run_dir(root, first["models"]["linear_ar"])
+    assert json.loads((run / "config.json").read_text())["devices"] == 1  # recorded
+    old = tmp_path / "runs" / prov["experiment"] / run.name
+    shutil.copytree(run, old)
+    payload = json.loads((old / "config.json").read_text())
+    payload["devices"] = 4
+    (old / "config.json").write_text(json.dumps(payload))
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=1) is None
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=4) == old
+    del payload["devices"]
+    (old / "config.json").write_text(json.dumps(payload))
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=1) == old
+    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=4) is None
+
+
 def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, capsys):
     _, first = smoke
     data = bench.parse_data_spec("synthetic", "smoke")

@@ -436,11 +436,16 @@ def _replace_path(config: Any, parts: list[str], value: Any) -> Any:
     return dataclasses.replace(config, **{parts[0]: _replace_path(inner, parts[1:], value)})
 
 
-def save_config(path: Any, *, experiment: str, preset: str | None, config: Any) -> None:
-    """Write ``config.json``: ``{"experiment", "preset", "config"}`` (see :func:`load_config`)."""
+def save_config(
+    path: Any, *, experiment: str, preset: str | None, config: Any, devices: int | None = None
+) -> None:
+    """Write ``config.json``: ``{"experiment", "preset", "config"}`` (see :func:`load_config`),
+    and ``"devices"``, the number of devices the run trains data-parallel on, when given."""
     from pathlib import Path
 
     payload = {"experiment": experiment, "preset": preset, "config": to_dict(config)}
+    if devices is not None:
+        payload["devices"] = int(devices)
     Path(path).write_text(json.dumps(payload, indent=2) + "\n")
 
 

@@ -239,8 +239,13 @@ def train(
     if _primary():  # the other processes of a multi-process run write nothing here
         for sub in ("checkpoints", "samples"):
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
+        devices = jax.device_count() if mesh is None else mesh.size  # of its latest segment
         cfg.save_config(
-            run_dir / "config.json", experiment=module.NAME, preset=preset, config=config
+            run_dir / "config.json",
+            experiment=module.NAME,
+            preset=preset,
+            config=config,
+            devices=devices,
         )
         payload = json.dumps(dataset.standardizer.to_dict(), indent=2) + "\n"
         (run_dir / "standardizer.json").write_text(payload)

@@ -44,12 +44,20 @@ def _without(config: dict | None, fields: tuple[str, ...]) -> dict | None:
 
 
 def find_run(
-    runs_dir: str | Path, experiment: str, config: Any, *, sampling_fields: tuple[str, ...] = ()
+    runs_dir: str | Path,
+    experiment: str,
+    config: Any,
+    *,
+    sampling_fields: tuple[str, ...] = (),
+    devices: int | None = None,
 ) -> Path | None:
     """The newest finished run under ``runs_dir/<experiment>/`` whose saved config equals
     ``config`` (same data, model and training settings) but for ``sampling_fields`` (the
     experiment's ``SAMPLING_FIELDS``: fields that change how a trained model samples, not
-    how it trains), else None."""
+    how it trains), else None. With ``devices``, only a run trained data-parallel on that
+    many devices (its ``config.json``'s ``"devices"``; 1 for a run saved before the count
+    was recorded): another count sums each batch in another order, so it is another
+    training, as another seed would be."""
     base = Path(runs_dir) / experiment
     if not base.is_dir():
         return None
@@ -66,6 +74,8 @@ def find_run(
         except RunError:
             continue
         if _without(saved_config, sampling_fields) != want:
+            continue
+        if devices is not None and saved.get("devices", 1) != devices:
             continue
         if run_finished(path.parent, steps):
             hits.append(path.parent)
@@ -101,7 +111,15 @@ def obtain_run(
     ``training_bars=False`` trains without the progress bar (``progress`` lines stay)."""
     experiment = provenance["experiment"]
     if not retrain:
-        found = find_run(runs_dir, experiment, config, sampling_fields=sampling_fields_of(exp))
+        import jax
+
+        found = find_run(
+            runs_dir,
+            experiment,
+            config,
+            sampling_fields=sampling_fields_of(exp),
+            devices=jax.device_count(),
+        )
         if found is not None:
             log(progress, f"{model_name}: reusing finished run {found}")
             return found, True, 0.0
