@@ -117,6 +117,26 @@ def test_overrides_parse_tuple_fields_with_element_types():
         apply_overrides(C(), ["pair=1"])  # wrong arity
 
 
+def test_overrides_are_checked_together_not_one_at_a_time():
+    """A preset's pair of fields that only make sense together (the Glow's
+    ``residual_decay`` needs ``residual``) can be switched off in either order: the
+    config is validated once, with every ``--set`` applied."""
+    import experiments.glow_fixed as g
+
+    preset = g.PRESETS["cpu"]
+    assert preset.residual and preset.residual_decay != 1.0
+    for order in (
+        ["residual=false", "residual_decay=1.0"],
+        ["residual_decay=1.0", "residual=false"],
+    ):
+        c = apply_overrides(preset, order)
+        assert not c.residual and c.residual_decay == 1.0
+    with pytest.raises(ValueError, match="needs residual=true"):
+        apply_overrides(preset, ["residual=false"])  # the end state is still checked
+    c = apply_overrides(preset, ["train.lr=0.5", "train.lr=0.25", "data.mirror=false"])
+    assert c.train.lr == 0.25 and c.data.mirror is False  # the last --set of a key wins
+
+
 def test_data_short_pads_or_drops_takes_shorter_than_the_window():
     """``data.short`` reaches the data layer: 1.5 s synthetic takes in 2 s windows are padded
     (frozen tails, ``valid`` False there) or dropped (then there is nothing to train on)."""

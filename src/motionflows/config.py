@@ -413,8 +413,11 @@ def has_override_key(config: Any, item: str) -> bool:
 
 
 def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
-    """Return ``config`` with ``key=value`` overrides applied (dotted or unique bare names)."""
+    """Return ``config`` with ``key=value`` overrides applied (dotted or unique bare names;
+    the last of a repeated key wins). The result is built and validated once, with every
+    override in place, so fields that must change together can be given in any order."""
     paths = _field_paths(type(config))
+    changes: dict[tuple[str, ...], Any] = {}
     for item in overrides:
         if "=" not in item:
             raise ValueError(f"--set expects key=value, got {item!r}")
@@ -425,15 +428,21 @@ def apply_overrides(config: Any, overrides: list[str] | tuple[str, ...]) -> Any:
             hint = f"ambiguous: {matches}" if matches else f"valid keys: {sorted(paths)}"
             raise ValueError(f"--set {key}: unknown config key ({hint})")
         path, kind = paths[matches[0]]
-        config = _replace_path(config, path.split("."), _parse(text.strip(), kind, key))
-    return config
+        changes[tuple(path.split("."))] = _parse(text.strip(), kind, key)
+    return _replace_paths(config, changes)
 
 
-def _replace_path(config: Any, parts: list[str], value: Any) -> Any:
-    if len(parts) == 1:
-        return dataclasses.replace(config, **{parts[0]: value})
-    inner = getattr(config, parts[0])
-    return dataclasses.replace(config, **{parts[0]: _replace_path(inner, parts[1:], value)})
+def _replace_paths(config: Any, changes: dict[tuple[str, ...], Any]) -> Any:
+    """``config`` with each (field path -> value) of ``changes`` set: one
+    ``dataclasses.replace`` per dataclass, the nested ones first."""
+    direct = {path[0]: value for path, value in changes.items() if len(path) == 1}
+    nested: dict[str, dict[tuple[str, ...], Any]] = {}
+    for path, value in changes.items():
+        if len(path) > 1:
+            nested.setdefault(path[0], {})[path[1:]] = value
+    for name, inner in nested.items():
+        direct[name] = _replace_paths(getattr(config, name), inner)
+    return dataclasses.replace(config, **direct) if direct else config
 
 
 def save_config(
