@@ -236,16 +236,16 @@ def train(
     if resume and not (run_dir / "config.json").is_file():
         raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
     dataset = config.data.load() if dataset is None else dataset
+    mesh = data_mesh() if mesh is None else mesh
     if _primary():  # the other processes of a multi-process run write nothing here
         for sub in ("checkpoints", "samples"):
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
-        devices = jax.device_count() if mesh is None else mesh.size  # of its latest segment
         cfg.save_config(
             run_dir / "config.json",
             experiment=module.NAME,
             preset=preset,
             config=config,
-            devices=devices,
+            devices=mesh.size,  # of its latest segment
         )
         payload = json.dumps(dataset.standardizer.to_dict(), indent=2) + "\n"
         (run_dir / "standardizer.json").write_text(payload)
@@ -295,7 +295,7 @@ class _Loop:
         self.module, self.config, self.dataset, self.run_dir = module, config, dataset, run_dir
         self.ckpt, self.eval_fn, self.keys, self.base_meta = ckpt, eval_fn, keys, base_meta
         self.tc = tc = config.train
-        self.mesh = data_mesh() if mesh is None else mesh
+        self.mesh = mesh
         check_batch_size(tc.batch_size, self.mesh)
         self.optimizer = make_optimizer(tc)
         self.schedule = learning_rate_schedule(tc)
