@@ -14,6 +14,7 @@ import json
 import math
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from motionflows import bench
 from motionflows.config import to_dict
 from motionflows.data import load_dataset
 from motionflows.errors import RunError
+from motionflows.evaluation import motion
 
 
 def _available() -> list[str]:
@@ -186,6 +188,41 @@ def test_motion_quality_and_speed(smoke):
         if entry["config"]["train"]["steps"] > 0:
             assert sp["train_frames_per_s"] > 0
         assert entry["params"] > 0
+
+
+def test_reference_rows_score_real_training_motion(smoke):
+    root, results = smoke
+    refs = results["references"]
+    own, matched = refs["training_takes"], refs["nearest_training_window"]
+    assert own["windows"] == matched["windows"] > 0
+    for row in (own, matched):
+        for key in ("foot_sliding", "contact_rate", "jerk", "fd_pose", "fd_window3"):
+            assert math.isfinite(row[key]) and row[key] >= 0, key
+    assert own["diversity"] > 0 and own["pose_error"] is None  # no test control was asked
+    assert matched["diversity"] is None and matched["pose_error"] >= 0  # one motion each
+    md = (root / "out" / "BENCHMARK.md").read_text()
+    assert "*training takes (own controls)*" in md
+    assert "*nearest training window (test controls)*" in md and "motion matching" in md
+
+
+def test_nearest_training_window_returns_the_training_motion_of_the_nearest_control():
+    # three training windows that differ in speed; the test asks for the second's control
+    # (a little faster): its own poses come back, placed on the test control
+    rng = np.random.default_rng(0)
+    t = 12
+    control = np.zeros((3, t, 3))
+    control[:, :, 0] = np.array([0.02, 0.06, 0.12])[:, None]
+    pose = rng.normal(size=(3, t, 63)) * 0.1 + np.tile([0.0, 0.9, 0.0], 21)
+    train = SimpleNamespace(pose=pose, control=control, valid=None, take=np.array([0, 1, 2]))
+    test_control = control[1:2] + [0.002, 0.0, 0.0]
+    refs = bench.data_references(train, pose[1:2], test_control, fps=20.0)
+    matched, own = refs["nearest_training_window"], refs["training_takes"]
+    assert matched["pose_error"] == pytest.approx(0.0, abs=1e-12)  # the same poses
+    assert matched["jerk"] == pytest.approx(
+        motion.jerk(pose[1:2], fps=20.0, control=test_control)
+    )  # ... on the test control
+    assert own["jerk"] == pytest.approx(motion.jerk(pose, fps=20.0, control=control))
+    assert own["windows"] == 3 and own["diversity"] > 0
 
 
 def test_second_bench_reuses_finished_runs(smoke, tmp_path):

@@ -242,6 +242,28 @@ def test_natural_diversity_pairs_nearest_controls():
         M.natural_diversity(pose, control, takes=np.array(["a"] * 4))
 
 
+def test_nearest_control_weighs_each_channel_by_its_spread_in_the_pool():
+    # the pool's forward speed spreads over 1 m/frame, its turn over 0.01 rad/frame: a turn
+    # off by 0.01 is a larger difference than a forward speed off by 0.02
+    rng = np.random.default_rng(0)
+    pool = np.zeros((6, 8, 3))
+    pool[:, :, 0] = rng.uniform(-1.5, 1.5, size=(6, 1))
+    pool[:, :, 2] = rng.uniform(-0.015, 0.015, size=(6, 1))
+    query = pool[:1].copy()
+    pool[1] = query[0] + [0.0, 0.0, 0.01]  # unscaled, 1e-4 per frame away
+    pool[2] = query[0] + [0.02, 0.0, 0.0]  # unscaled, 4e-4 per frame away
+    pool = pool[1:]  # the query itself is not in the pool
+    assert M.nearest_control(query, pool).tolist() == [1]  # pool[2] above
+    unscaled = ((query.reshape(1, -1) - pool.reshape(len(pool), -1)) ** 2).sum(1)
+    assert np.argmin(unscaled) == 0  # plain distances would pick the turn's neighbour
+    # squared distances in the pool's std units, so the pool holds every query at 0
+    d = M.control_distances(pool, pool)
+    np.testing.assert_allclose(np.diag(d), 0.0, atol=1e-9)
+    assert M.nearest_control(pool, pool).tolist() == list(range(len(pool)))
+    with pytest.raises(ValueError, match="same T"):
+        M.control_distances(query, pool[:, :4])
+
+
 def test_stride_period_finds_the_feet_alternation_and_not_its_multiples():
     """Ankles swinging in anti-phase with period P (plus noise): the estimate is P, for any
     amplitude, within 2 %; standing gives NaN; the synthetic walk's rises with slower speed."""

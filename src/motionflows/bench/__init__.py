@@ -53,6 +53,7 @@ from motionflows.bench.reuse import find_run, fit_seconds, obtain_run, run_finis
 from motionflows.bench.scoring import (
     DIVERGED_METRES,
     MOTION_METRICS,
+    data_references,
     diverged,
     merge_splits,
     motion_metrics,
@@ -88,6 +89,7 @@ __all__ = [
     "check_overrides",
     "complete_windows",
     "count_params",
+    "data_references",
     "describe_machine",
     "diverged",
     "estimate_training",

@@ -40,6 +40,7 @@ from motionflows.bench.reuse import (
 )
 from motionflows.bench.scoring import (
     MOTION_METRICS,
+    data_references,
     foot_locked,
     merge_splits,
     motion_metrics,
@@ -491,6 +492,8 @@ def run_benchmark(
         gt["diversity"] = natural_diversity_of(dataset.test)
         results["ground_truth"] = {"motion": gt}
     results.setdefault("ground_truth", {"motion": None})
+    with _Section(results, "references_error", strict, progress):
+        results["references"] = data_references(dataset.train, gt_m, control_m, float(data_cfg.fps))
     results.update(motion_metrics=dict(MOTION_METRICS), motion_note=report.MOTION_NOTE)
     options = dict(
         temperature=temperature, seed=seed, retrain=retrain, strict=strict, overrides=overrides,

@@ -43,6 +43,24 @@ MOTION_NOTE = (
 )
 """The motion section's definitions of its metrics (printed under the table)."""
 
+REFERENCE_ROWS = {
+    "training_takes": "training takes (own controls)",
+    "nearest_training_window": "nearest training window (test controls)",
+}
+"""The rows of real training motion under the ground truth (``results["references"]``,
+:func:`motionflows.bench.scoring.data_references`), and their labels."""
+
+REFERENCE_NOTE = (
+    "Reference rows (real motion, no model): *training takes* scores every complete training "
+    "window on its own control, as a model that reproduced its training data would score on "
+    "the control-independent metrics (its FDs are against the test windows; its diversity is "
+    "the training split's natural diversity); *nearest training window* gives each test "
+    "control the training window whose control is closest (RMS over frames, channels divided "
+    "by their std) and scores it on the test control as a sample: motion matching over whole "
+    "windows."
+)
+"""How the reference rows were made (printed under the motion table when they are there)."""
+
 
 NATS = "nats_per_frame_metres"
 BITS = "bits_per_frame_std"
@@ -139,6 +157,10 @@ def motion_table(results: dict, order: list[str]) -> str:
     rows = []
     gt = results.get("ground_truth", {}).get("motion", {})
     rows.append(["*ground truth (test)*"] + [_fmt(gt.get(k), 3) for k in keys])
+    refs = results.get("references") or {}
+    for ref, label in REFERENCE_ROWS.items():
+        if row := refs.get(ref):
+            rows.append([f"*{label}*"] + [_fmt(row.get(k), 3) for k in keys])
     for name in order:
         entry = results["models"].get(name, {})
         motion = entry.get("motion")
@@ -374,6 +396,7 @@ def _motion_section(results: dict, order: list[str]) -> list[str]:
         "first row scores the ground-truth test motion the same way. "
         + results.get("motion_note", "")
         + foot_lock_note(results)
+        + (" " + REFERENCE_NOTE if results.get("references") else "")
         + "\n",
         motion_table(results, order) + "\n",
     ]

@@ -231,6 +231,43 @@ def natural_diversity_of(windows) -> float | None:
         return None
 
 
+def data_references(train_windows, reference_m, control_m, fps: float) -> dict:
+    """Two rows of real motion beside the ground truth, from the complete windows of the
+    training split (metres), scored with the test rows' metrics:
+
+    * ``"training_takes"``: the training performers' motion on its own controls: what a
+      model that reproduced its training data exactly would score, as far as a metric does
+      not depend on the control asked (foot sliding, skate ratio, contact rate, bone-length
+      std and jerk of all those windows; FDs against the test windows ``reference_m``
+      (N, T, 63); the split's natural diversity; no errors: no test control was asked);
+    * ``"nearest_training_window"``: for each test control ``control_m`` (N, T, 3), the
+      training window whose control is closest (:func:`motionflows.evaluation.motion.
+      nearest_control`), placed on the test control and scored as a model's sample is
+      (diversity n/a: one motion per control). Motion matching over whole windows: real
+      motion of the training performers, chosen for the control.
+    """
+    from motionflows.evaluation import motion as mm
+
+    idx = complete_windows(train_windows)
+    pose = np.asarray(train_windows.pose, np.float64)[idx]
+    control = np.asarray(train_windows.control, np.float64)[idx]
+    reference_m = np.asarray(reference_m, np.float64)
+    own: dict[str, Any] = dict(mm.motion_quality(pose, control, fps=fps))
+    own.update(
+        diverged=0.0,
+        fd_pose=mm.frechet_pose_distance(reference_m, pose),
+        fd_window3=mm.frechet_window_distance(reference_m, pose, frames=3),
+        diversity=natural_diversity_of(train_windows),
+        pose_error=None,
+        motion_error=None,
+        windows=len(idx),
+    )
+    nearest = mm.nearest_control(control_m, control)
+    matched = motion_metrics(pose[nearest], control_m, reference_m, None, fps)
+    matched["windows"] = len(idx)
+    return {"training_takes": own, "nearest_training_window": matched}
+
+
 def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -> dict:
     """Motion-quality metrics of ``samples_m`` (N, T, 63) metres for controls ``control_m``
     against the ground truth ``reference_m`` (N, T, 63); ``diversity_m`` (M, T, 63) are M

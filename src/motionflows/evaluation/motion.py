@@ -441,16 +441,44 @@ def diversity(samples: Any) -> float:
     return float(np.mean(dists))
 
 
+def control_distances(control: Any, pool: Any) -> np.ndarray:
+    """Squared distances (N, M) between control sequences (N, T, 3) and a pool (M, T, 3):
+    the sum over frames and channels after dividing each channel by its standard deviation
+    over the pool's frames, so forward, sideways and turn count alike (a channel that is
+    constant in the pool is left as it is). The distance behind
+    :func:`natural_diversity` and :func:`nearest_control`."""
+    c, q = np.asarray(control, dtype=np.float64), np.asarray(pool, dtype=np.float64)
+    _check_control(c, "control")
+    _check_control(q, "pool")
+    if c.ndim != 3 or c.shape[1:] != q.shape[1:] or len(q) == 0:
+        raise ValueError(
+            f"control_distances needs controls (N, T, 3) and a non-empty pool (M, T, 3) of "
+            f"the same T, got {c.shape} and {q.shape}"
+        )
+    scale = q.reshape(-1, q.shape[-1]).std(axis=0)
+    scale = np.where(scale > 0, scale, 1.0)
+    a, b = (c / scale).reshape(len(c), -1), (q / scale).reshape(len(q), -1)
+    return np.sum(a**2, axis=1)[:, None] + np.sum(b**2, axis=1)[None, :] - 2.0 * a @ b.T
+
+
+def nearest_control(control: Any, pool: Any) -> np.ndarray:
+    """For each control sequence (N, T, 3), the index (N,) into ``pool`` (M, T, 3) of the
+    sequence closest by :func:`control_distances`: motion matching's query, whole windows.
+    The bench's "nearest training window" row places the training poses so found on the
+    test controls, real motion chosen for the control it was asked."""
+    return np.argmin(control_distances(control, pool), axis=1)
+
+
 def natural_diversity(pose: Any, control: Any, *, takes: Any = None) -> float:
     """The data's own diversity under (nearly) one control: a reference for :func:`diversity`.
 
     Each window i (pose (N, T, 63) metres, control (N, T, 3)) is paired with its nearest
     neighbour j in control space: the window, from another take when ``takes`` (N,) is
-    given, whose control sequence is closest in RMS over frames after dividing each control
-    channel by its standard deviation over the set (so forward, sideways and turn count
-    alike). Returns the mean over windows of the mean per-joint distance (metres) between
-    the poses of i and j: how different two real motions with close controls are. Needs
-    N >= 2 (and two takes when ``takes`` is given)."""
+    given, whose control sequence is closest by :func:`control_distances` (RMS over frames
+    after dividing each control channel by its standard deviation over the set, so forward,
+    sideways and turn count alike). Returns the mean over windows of the mean per-joint
+    distance (metres) between the poses of i and j: how different two real motions with
+    close controls are. Needs N >= 2 (and two takes when ``takes`` is given)."""
     p = _joints(pose)
     c = np.asarray(control, dtype=np.float64)
     _check_control(c)
@@ -459,10 +487,7 @@ def natural_diversity(pose: Any, control: Any, *, takes: Any = None) -> float:
             f"natural_diversity needs (N >= 2, T, 63) poses with (N, T, 3) controls, got "
             f"{np.shape(pose)} and {c.shape}"
         )
-    scale = c.reshape(-1, c.shape[-1]).std(axis=0)
-    flat = (c / np.where(scale > 0, scale, 1.0)).reshape(len(c), -1)
-    sq = np.sum(flat**2, axis=1)
-    dist = sq[:, None] + sq[None, :] - 2.0 * flat @ flat.T
+    dist = control_distances(c, c)
     if takes is None:
         np.fill_diagonal(dist, np.inf)
     else:
