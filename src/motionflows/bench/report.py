@@ -52,9 +52,11 @@ REFERENCE_ROWS = {
 
 REFERENCE_NOTE = (
     "Reference rows (real motion, no model): *training takes* scores every complete training "
-    "window on its own control, as a model that reproduced its training data would score on "
-    "the control-independent metrics (its FDs are against the test windows; its diversity is "
-    "the training split's natural diversity); *nearest training window* gives each test "
+    "window (mirrored copies included where the pipeline augments; no model's own "
+    "augmentation, such as a tempo) on its own control, as a model that reproduced its "
+    "training data would score on the control-independent metrics (its FDs are against the "
+    "test windows; its diversity is the training split's natural diversity); *nearest "
+    "training window* gives each test "
     "control the training window whose control is closest (RMS over frames, channels divided "
     "by their std) and scores it on the test control as a sample: motion matching over whole "
     "windows."
