@@ -8,7 +8,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from motionflows.bench.report import NATS
+import numpy as np
+
+from motionflows.bench.report import NATS, REFERENCE_ROWS
 
 
 def plot_per_frame_nll(results: dict, path: str | Path) -> bool:
@@ -51,7 +53,8 @@ def plot_per_frame_nll(results: dict, path: str | Path) -> bool:
 
 
 def plot_metric_bars(results: dict, path: str | Path) -> bool:
-    """One bar panel per motion metric: ground truth first, then every model."""
+    """One bar panel per motion metric: ground truth and the reference rows of real training
+    motion first (greys), then every model."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -60,17 +63,21 @@ def plot_metric_bars(results: dict, path: str | Path) -> bool:
     meta = results.get("motion_metrics", {})
     if not meta:
         return False
-    names = ["ground truth"] + [
+    values = {"ground truth": results.get("ground_truth", {}).get("motion", {})}
+    refs = results.get("references") or {}
+    short = {ref: label.split(" (")[0] for ref, label in REFERENCE_ROWS.items()}
+    values.update({short[ref]: refs[ref] for ref in REFERENCE_ROWS if refs.get(ref)})
+    greys = [f"{g:.2f}" for g in np.linspace(0.4, 0.75, len(values))]
+    models = [
         n for n in results.get("model_order", []) if results["models"].get(n, {}).get("motion")
     ]
-    values = {"ground truth": results.get("ground_truth", {}).get("motion", {})}
-    for n in names[1:]:
-        values[n] = results["models"][n]["motion"]
+    values.update({n: results["models"][n]["motion"] for n in models})
+    names = list(values)
     keys = list(meta)
     cols = min(4, len(keys))
     rows = math.ceil(len(keys) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.8 * rows), squeeze=False)
-    colors = ["0.4"] + [f"C{i}" for i in range(len(names) - 1)]
+    colors = greys + [f"C{i}" for i in range(len(models))]
     for ax, key in zip(axes.flat, keys, strict=False):
         vals = [values[n].get(key) for n in names]
         vals = [float(v) if v is not None and math.isfinite(float(v)) else 0.0 for v in vals]
