@@ -56,10 +56,9 @@ REFERENCE_NOTE = (
     "augmentation, such as a tempo) on its own control, as a model that reproduced its "
     "training data would score on the control-independent metrics (its FDs are against the "
     "test windows; its diversity is the training split's natural diversity); *nearest "
-    "training window* gives each test "
-    "control the training window whose control is closest (RMS over frames, channels divided "
-    "by their std) and scores it on the test control as a sample: motion matching over whole "
-    "windows."
+    "training window* gives each test control the training window whose control is closest "
+    "(RMS over frames, channels divided by their std) and scores it on the test control as a "
+    "sample: motion matching over whole windows."
 )
 """How the reference rows were made (printed under the motion table when they are there)."""
 
