@@ -225,6 +225,20 @@ def test_nearest_training_window_returns_the_training_motion_of_the_nearest_cont
     assert own["windows"] == 3 and own["diversity"] > 0
 
 
+def test_reference_rows_use_a_bounded_share_of_a_large_training_split(monkeypatch):
+    # the natural diversity compares every pair of windows: a large split is subsampled
+    from motionflows.bench import scoring
+
+    monkeypatch.setattr(scoring, "REFERENCE_WINDOWS", 4)
+    rng = np.random.default_rng(1)
+    control = np.zeros((9, 10, 3))
+    control[:, :, 0] = rng.uniform(0.01, 0.1, size=(9, 1))
+    pose = rng.normal(size=(9, 10, 63)) * 0.1
+    train = SimpleNamespace(pose=pose, control=control, valid=None, take=np.arange(9))
+    refs = scoring.data_references(train, pose[:2], control[:2], fps=20.0)
+    assert refs["training_takes"]["windows"] == refs["nearest_training_window"]["windows"] == 4
+
+
 def test_second_bench_reuses_finished_runs(smoke, tmp_path):
     root, first = smoke
     again = _bench_again(smoke, tmp_path / "out", "gaussian,linear_ar")

@@ -17,7 +17,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from motionflows.bench.scoring import DIVERGED_METRES
+from motionflows.bench.scoring import DIVERGED_METRES, REFERENCE_WINDOWS
 
 MOTION_NOTE = (
     "Foot sliding: mean horizontal world speed of a foot (mean of ankle and toe) while its "
@@ -52,8 +52,9 @@ REFERENCE_ROWS = {
 
 REFERENCE_NOTE = (
     "Reference rows (real motion, no model): *training takes* scores every complete training "
-    "window (mirrored copies included where the pipeline augments; no model's own "
-    "augmentation, such as a tempo) on its own control, as a model that reproduced its "
+    f"window (at most {REFERENCE_WINDOWS}, a fixed random subset beyond; mirrored copies "
+    "included where the pipeline augments; no model's own augmentation, such as a tempo) on "
+    "its own control, as a model that reproduced its "
     "training data would score on the control-independent metrics (its FDs are against the "
     "test windows; its diversity is the training split's natural diversity); *nearest "
     "training window* gives each test control the training window whose control is closest "

@@ -16,7 +16,7 @@ import numpy as np
 
 from motionflows.bench.budgets import EVAL_CHUNK
 from motionflows.errors import RunError
-from motionflows.windows import complete_windows, pick, standardized
+from motionflows.windows import complete_windows, pick, standardized, subset
 
 DIVERGED_METRES = 10.0
 """A sample with a root-relative coordinate beyond this (or NaN/inf) counts as diverged."""
@@ -214,13 +214,14 @@ def foot_locked(samples_m, control_m) -> np.ndarray:
     return out
 
 
-def natural_diversity_of(windows) -> float | None:
+def natural_diversity_of(windows, idx=None) -> float | None:
     """The ground-truth row's diversity: :func:`motionflows.evaluation.motion.natural_diversity`
-    of every complete window of a split, each paired with the window of another take whose
-    control is closest (None when the split has fewer than two takes)."""
+    of every complete window of a split (or of the windows ``idx``), each paired with the
+    window of another take whose control is closest (None when the split has fewer than two
+    takes)."""
     from motionflows.evaluation import motion as mm
 
-    idx = complete_windows(windows)
+    idx = complete_windows(windows) if idx is None else idx
     takes = getattr(windows, "take", None)
     takes = None if takes is None else np.asarray(takes)[idx]
     try:
@@ -231,9 +232,16 @@ def natural_diversity_of(windows) -> float | None:
         return None
 
 
+REFERENCE_WINDOWS = 4096
+"""At most this many complete training windows (a fixed random subset beyond it) make the
+reference rows: the natural diversity compares every pair, so memory grows with its square
+(4096 windows: 134 MB)."""
+
+
 def data_references(train_windows, reference_m, control_m, fps: float) -> dict:
     """Two rows of real motion beside the ground truth, from the complete windows of the
-    training split (metres), scored with the test rows' metrics:
+    training split (metres; at most :data:`REFERENCE_WINDOWS` of them, a fixed random
+    subset), scored with the test rows' metrics:
 
     * ``"training_takes"``: the training performers' motion on its own controls: what a
       model that reproduced its training data exactly would score, as far as a metric does
@@ -249,6 +257,7 @@ def data_references(train_windows, reference_m, control_m, fps: float) -> dict:
     from motionflows.evaluation import motion as mm
 
     idx = complete_windows(train_windows)
+    idx = idx[subset(len(idx), REFERENCE_WINDOWS, seed=3)]
     pose = np.asarray(train_windows.pose, np.float64)[idx]
     control = np.asarray(train_windows.control, np.float64)[idx]
     reference_m = np.asarray(reference_m, np.float64)
@@ -257,7 +266,7 @@ def data_references(train_windows, reference_m, control_m, fps: float) -> dict:
         diverged=0.0,
         fd_pose=mm.frechet_pose_distance(reference_m, pose),
         fd_window3=mm.frechet_window_distance(reference_m, pose, frames=3),
-        diversity=natural_diversity_of(train_windows),
+        diversity=natural_diversity_of(train_windows, idx),
         pose_error=None,
         motion_error=None,
         windows=len(idx),
