@@ -258,8 +258,8 @@ def data_references(train_windows, reference_m, control_m, fps: float) -> dict:
 
     idx = complete_windows(train_windows)
     idx = idx[subset(len(idx), REFERENCE_WINDOWS, seed=3)]
-    pose = np.asarray(train_windows.pose, np.float64)[idx]
-    control = np.asarray(train_windows.control, np.float64)[idx]
+    pose = np.asarray(train_windows.pose)[idx].astype(np.float64)  # only the capped windows
+    control = np.asarray(train_windows.control)[idx].astype(np.float64)
     reference_m = np.asarray(reference_m, np.float64)
     own: dict[str, Any] = dict(mm.motion_quality(pose, control, fps=fps))
     own.update(
