@@ -59,6 +59,16 @@ def test_export_holds_no_optimiser_state_and_loads_like_the_run(exported):
         export_run(run_dir, out)
 
 
+def test_export_names_its_run_without_the_machines_paths(exported):
+    """A shipped export names the run it came from as experiment/run-name: the absolute path
+    of the machine that exported it is neither portable nor the user's business."""
+    run_dir, out = exported
+    (meta_file,) = (out / "checkpoints" / "best").glob("*/meta/metadata")
+    meta = json.loads(meta_file.read_text())
+    assert meta["exported_from"] == "moglow/tiny"
+    assert str(run_dir.parent.parent) not in meta_file.read_text()
+
+
 def test_a_failed_overwrite_keeps_the_old_export_and_the_run_is_read_once(
     exported, tmp_path, monkeypatch
 ):

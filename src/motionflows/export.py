@@ -95,7 +95,8 @@ def _write_export(run_dir: Path, out: Path, params, rest, step: int, meta: dict,
     for table in sorted(run_dir.glob("eval_*.json")):
         shutil.copy2(table, out / table.name)
     meta = {k: v for k, v in meta.items() if k not in ("opt",)}
-    meta.update(exported_from=str(run_dir), exported_checkpoint=which)
+    # experiment/run-name: where it came from, without the exporting machine's paths
+    meta.update(exported_from=f"{run_dir.parent.name}/{run_dir.name}", exported_checkpoint=which)
     target = Checkpointer(out / "checkpoints", keep=1)
     try:
         target.save(step, {"params": params, "rest": rest}, meta, which="best")
