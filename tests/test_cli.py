@@ -58,6 +58,7 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     ]
     code, out, err = _run(capsys, "train", "cli_fake", "--steps", 2, "--run-name", "r", *common)
     assert code == 0, err
+    assert "data: fake, 24 training windows" in err  # what it trains on, before it trains
     assert "nats/frame" in out and "window" in out and "official" in out
     run = runs / "cli_fake" / "r"
     assert (run / "eval_test.json").is_file() and (run / "config.json").is_file()

@@ -213,6 +213,24 @@ def test_train_fraction_keeps_a_nested_share_of_each_groups_training_takes():
     assert not np.allclose(half.standardizer.pose_mean, full.standardizer.pose_mean)
     with pytest.raises(ValueError, match=r"data.train_fraction must be .*> 0 and <= 1"):
         DataConfig(train_fraction=0.0)
+
+
+def test_summary_counts_each_splits_takes_and_windows_and_the_share_kept():
+    """``MotionDataset.summary()``, the line ``motionflows train`` prints: the takes and
+    windows of each split, the augmentation, and with a ``train_fraction`` how many of the
+    available training takes the share kept."""
+    kw = dict(n_clips=24, seconds=3.0, window=20, split_by="performer", cache=False)
+    half = load_dataset("synthetic", train_fraction=0.5, **kw)
+    full = load_dataset("synthetic", **kw)
+    n_half, n_full = len(half.clips["train"]), len(full.clips["train"])
+    assert n_half < n_full
+    line = half.summary()
+    assert line.startswith("synthetic, split by performer: ")
+    share = f"train {n_half} of {n_full} takes (train_fraction 0.5)"
+    assert f"{share} -> {len(half.train)} windows (mirrored)" in line
+    for split in ("val", "test"):
+        assert f"{split} {len(half.clips[split])} takes ({len(half.split(split))} windows)" in line
+    assert f"train {n_full} takes -> {len(full.train)} windows (mirrored)" in full.summary()
     with pytest.raises(ValueError, match=r"train_fraction must be in \(0, 1\]"):
         load_dataset("synthetic", train_fraction=1.5, **kw)
 

@@ -62,6 +62,9 @@ class FakeDataset:
     def split(self, name):
         return getattr(self, name)
 
+    def summary(self):
+        return f"fake, {len(self.train.pose)} training windows"
+
     def batch(self, split, batch_size, *, seed, index, standardized=True):
         ws = self.split(split)
         rng = np.random.default_rng([seed, index, ("train", "val", "test").index(split)])

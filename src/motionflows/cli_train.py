@@ -125,6 +125,7 @@ def run_train(module: Any, args: argparse.Namespace) -> int:
     distributed.check_same_config(module.NAME, config)
     print(f"run directory: {run_dir}", file=sys.stderr)
     dataset = config.data.load()
+    print(f"data: {dataset.summary()}", file=sys.stderr)
     result = training.train(
         module,
         config,

@@ -175,6 +175,24 @@ class MotionDataset:
         sizes = ", ".join(f"{s}={len(self._splits[s])}" for s in SPLITS)
         return f"MotionDataset({self.info.get('source')}: windows {sizes})"
 
+    def summary(self) -> str:
+        """One line: the source and split rule, each split's takes and windows, the training
+        augmentation and, with ``train_fraction`` < 1, how many training takes it kept."""
+        info = self.info
+        takes = {s: len(self.clips.get(s, ())) for s in SPLITS}
+        train = f"train {takes['train']} takes"
+        available = info.get("train_takes_available", takes["train"])
+        if available != takes["train"]:
+            share = f"train_fraction {info.get('train_fraction', 1.0):g}"
+            train = f"train {takes['train']} of {available} takes ({share})"
+        aug = info.get("augment", {})
+        kinds = [k for k, on in (("mirrored", "mirror"), ("reversed", "reverse")) if aug.get(on)]
+        if aug.get("tempo", 1.0) != 1.0:
+            kinds.append(f"tempo {aug['tempo']:g} {aug.get('tempo_replay', 'both')}")
+        train += f" -> {len(self.train)} windows ({', '.join(kinds) or 'as recorded'})"
+        held = "; ".join(f"{s} {takes[s]} takes ({len(self.split(s))} windows)" for s in SPLITS[1:])
+        return f"{info.get('source')}, split by {info.get('split_by')}: {train}; {held}"
+
     def with_test(self, windows: WindowSet, **info) -> MotionDataset:
         """A copy whose test split is ``windows`` (e.g. takes of an unseen performer); the
         standardiser and the other splits are kept, ``info`` entries are added."""
@@ -474,6 +492,7 @@ def load_dataset(
     split_clips = _assign_takes(
         clips, source_info, split_by, val_frac, test_frac, val_performers, test_performers
     )
+    available = len(split_clips["train"])
     split_clips["train"] = _train_share(split_clips["train"], train_fraction)
     splits, stats = _split_windows(
         split_clips,
@@ -500,6 +519,7 @@ def load_dataset(
         "split_by": split_by,
         "styles": sorted(styles) if styles else None,
         "train_fraction": float(train_fraction),
+        "train_takes_available": available,
         "augment": {
             "mirror": bool(mirror),
             "reverse": bool(reverse),
