@@ -213,6 +213,8 @@ def test_train_fraction_keeps_a_nested_share_of_each_groups_training_takes():
     assert not np.allclose(half.standardizer.pose_mean, full.standardizer.pose_mean)
     with pytest.raises(ValueError, match=r"data.train_fraction must be .*> 0 and <= 1"):
         DataConfig(train_fraction=0.0)
+    with pytest.raises(ValueError, match=r"train_fraction must be in \(0, 1\]"):
+        load_dataset("synthetic", train_fraction=1.5, **kw)
 
 
 def test_summary_counts_each_splits_takes_and_windows_and_the_share_kept():
@@ -231,8 +233,8 @@ def test_summary_counts_each_splits_takes_and_windows_and_the_share_kept():
     for split in ("val", "test"):
         assert f"{split} {len(half.clips[split])} takes ({len(half.split(split))} windows)" in line
     assert f"train {n_full} takes -> {len(full.train)} windows (mirrored)" in full.summary()
-    with pytest.raises(ValueError, match=r"train_fraction must be in \(0, 1\]"):
-        load_dataset("synthetic", train_fraction=1.5, **kw)
+    faster = load_dataset("synthetic", tempo=1.25, tempo_replay="faster", mirror=False, **kw)
+    assert f"-> {len(faster.train)} windows (tempo 1.25 faster)" in faster.summary()
 
 
 def test_control_presets():

@@ -179,7 +179,7 @@ class MotionDataset:
         """One line: the source and split rule, each split's takes and windows, the training
         augmentation and, with ``train_fraction`` < 1, how many training takes it kept."""
         info = self.info
-        takes = {s: len(self.clips.get(s, ())) for s in SPLITS}
+        takes = {s: info.get("takes", {}).get(s, len(self.clips.get(s, ()))) for s in SPLITS}
         train = f"train {takes['train']} takes"
         available = info.get("train_takes_available", takes["train"])
         if available != takes["train"]:
