@@ -219,6 +219,7 @@ def test_render_npz_and_demo_with_the_baseline(tmp_path, capsys, fake_data):
     )
     out, err = capsys.readouterr()
     assert code == 0, err
+    assert "== data: fake, 24 training windows" in err  # as `train` says it
     assert "nats/frame" in out and "window" in out
     (run,) = (tmp_path / "runs" / "baselines").iterdir()
     assert (run / "samples" / "demo_walk-turn-run.gif").is_file()

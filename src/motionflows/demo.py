@@ -87,6 +87,7 @@ def train_demo(args) -> int:
         file=sys.stderr,
     )
     dataset = config.data.load()
+    print(f"== data: {dataset.summary()}", file=sys.stderr)
     result = training.train(module, config, run_dir=run_dir, preset="quick", dataset=dataset)
     if result.status not in ("finished", "fitted"):
         print(f"demo: training stopped ({result.status}); see {run_dir}", file=sys.stderr)
