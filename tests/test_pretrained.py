@@ -253,6 +253,18 @@ def test_shipped_model_is_its_experiments_cpu_preset(name):
     assert to_dict(config_from_json(path, module.Config, saved)) == to_dict(want)
 
 
+@pytest.mark.parametrize("name", pretrained.available())
+def test_shipped_model_names_its_run_as_experiment_and_run_name(name):
+    """The shipped exports name their runs as `motionflows export` does now
+    (experiment/run-name), not by a path on the machine that trained them."""
+    (meta_file,) = (pretrained.path(name) / "checkpoints" / "best").glob("*/meta/metadata")
+    experiment, run_name = json.loads(meta_file.read_text())["exported_from"].split("/")
+    assert (
+        experiment == json.loads((pretrained.path(name) / "config.json").read_text())["experiment"]
+    )
+    assert run_name.startswith("ship-")
+
+
 def test_the_fixed_length_glow_samples_its_window_and_warns_at_other_lengths(tmp_path, capsys):
     """The Glow learnt 80-frame windows: `sample` without --seconds draws one window, and a
     length it never saw (any multiple of 4 runs) warns instead of passing silently."""
