@@ -259,10 +259,8 @@ def test_shipped_model_names_its_run_as_experiment_and_run_name(name):
     (experiment/run-name), not by a path on the machine that trained them."""
     (meta_file,) = (pretrained.path(name) / "checkpoints" / "best").glob("*/meta/metadata")
     experiment, run_name = json.loads(meta_file.read_text())["exported_from"].split("/")
-    assert (
-        experiment == json.loads((pretrained.path(name) / "config.json").read_text())["experiment"]
-    )
-    assert run_name.startswith("ship-")
+    config = json.loads((pretrained.path(name) / "config.json").read_text())
+    assert experiment == config["experiment"] and run_name.startswith("ship-")
 
 
 def test_the_fixed_length_glow_samples_its_window_and_warns_at_other_lengths(tmp_path, capsys):
