@@ -237,6 +237,25 @@ def test_summary_counts_each_splits_takes_and_windows_and_the_share_kept():
     assert f"-> {len(faster.train)} windows (tempo 1.25 faster)" in faster.summary()
 
 
+def test_with_test_describes_the_new_test_split():
+    """``with_test`` (the bench's ``--test-data``) swaps the test windows: the info and the
+    summary count the new split's takes and windows, and nothing keeps the old split's
+    counts or clips."""
+    kw = dict(n_clips=24, seconds=3.0, window=20, split_by="performer", cache=False)
+    data = load_dataset("synthetic", **kw)
+    other = load_dataset("synthetic", seed=5, **kw).train
+    swapped = data.with_test(other, test_data="elsewhere")
+    n_takes = len(set(other.take.tolist()))
+    assert n_takes != data.info["takes"]["test"]
+    assert swapped.info["takes"]["test"] == n_takes
+    assert swapped.info["windows"]["test"] == len(other)
+    assert swapped.info["padded_windows"]["test"] == int((~other.valid).any(axis=1).sum())
+    assert "test" not in swapped.info["frames_total"] and "test" not in swapped.clips
+    assert f"test {n_takes} takes ({len(other)} windows)" in swapped.summary()
+    assert swapped.info["test_data"] == "elsewhere"
+    assert data.info["takes"]["test"] == len(data.clips["test"])  # the original is untouched
+
+
 def test_control_presets():
     for name in PRESETS:
         c = preset(name, 6.0)

@@ -165,6 +165,8 @@ def test_bench_scores_every_table_on_the_test_data(tmp_path):
     test = results["test_data"]
     assert test["spec"] == f"bvh:{folder}" and test["windows"] == len(takes.windows)
     assert sorted(test["takes"]) == sorted(n[:-4] for n in TAKES[:4])
+    info = results["data"]["info"]  # the dataset's counts describe the swapped test split
+    assert info["takes"]["test"] == 4 and info["windows"]["test"] == len(takes.windows)
     lik = results["models"]["gaussian"]["likelihood"]["window"]["test"]
     assert lik["windows"] == len(takes.windows)  # scored on the takes, not the split
     saved = json.loads((tmp_path / "bench" / "results.json").read_text())

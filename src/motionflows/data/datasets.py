@@ -195,9 +195,23 @@ class MotionDataset:
 
     def with_test(self, windows: WindowSet, **info) -> MotionDataset:
         """A copy whose test split is ``windows`` (e.g. takes of an unseen performer); the
-        standardiser and the other splits are kept, ``info`` entries are added."""
+        standardiser and the other splits are kept, ``info`` entries are added. The per-split
+        counts describe the new test windows (takes, windows, padded windows); those the
+        windows cannot tell (frames per take, performers) and the old test clips are
+        dropped rather than kept stale."""
         splits = dict(self._splits, test=windows)
-        return MotionDataset(splits, self.standardizer, {**self.info, **info}, self.clips)
+        new = {
+            "takes": len(set(np.asarray(windows.take).tolist())),
+            "windows": len(windows),
+            "padded_windows": int((~windows.valid).any(axis=1).sum()),
+        }
+        merged = {**self.info, **info}
+        for key, counts in self.info.items():
+            if isinstance(counts, dict) and "test" in counts and set(counts) <= set(SPLITS):
+                rest = {s: n for s, n in counts.items() if s != "test"}
+                merged[key] = {**rest, "test": new[key]} if key in new else rest
+        clips = {s: c for s, c in self.clips.items() if s != "test"}
+        return MotionDataset(splits, self.standardizer, merged, clips)
 
     def arrays(self, split: str, *, standardized: bool = True) -> dict[str, np.ndarray]:
         """All windows of a split: {"pose": (N, T, 63), "control": (N, T, 3), "valid"}."""
