@@ -495,7 +495,7 @@ def test_no_progress_trains_without_bars_and_keeps_the_bench_lines(monkeypatch, 
     lines, trained = [], {}
 
     def fake_train_run(exp, config, run_dir, *, preset, progress, dataset=None):
-        trained["progress"] = progress
+        trained.update(progress=progress, dataset=dataset)
 
     monkeypatch.setattr(reuse, "train_run", fake_train_run)
     exp = bench.load_experiment("linear_ar")
@@ -508,6 +508,10 @@ def test_no_progress_trains_without_bars_and_keeps_the_bench_lines(monkeypatch, 
         )  # fmt: skip
         assert bool(trained["progress"]) is bars
     assert sum("training smoke preset" in line for line in lines) == 2
+    # it says what the model trains on, as `motionflows train` does, and loads it once
+    summary = trained["dataset"].summary()
+    assert summary.startswith("synthetic, split by ")
+    assert sum(line.endswith(f"] linear_ar: data: {summary}") for line in lines) == 2
 
 
 def test_the_speed_section_says_when_sampling_ran_on_simulated_cpu_devices():

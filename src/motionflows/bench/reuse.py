@@ -131,6 +131,8 @@ def obtain_run(
         f"({config.train.steps} steps) -> {run_dir}",
     )
     t0 = time.perf_counter()
+    dataset = config.data.load() if dataset is None else dataset
+    log(progress, f"{model_name}: data: {dataset.summary()}")
     bars = progress if training_bars else None
     train_run(exp, config, run_dir, preset=provenance["preset"], progress=bars, dataset=dataset)
     return run_dir, False, time.perf_counter() - t0
