@@ -224,3 +224,23 @@ def test_render_npz_and_demo_with_the_baseline(tmp_path, capsys, fake_data):
     (run,) = (tmp_path / "runs" / "baselines").iterdir()
     assert (run / "samples" / "demo_walk-turn-run.gif").is_file()
     assert np.load(run / "samples" / "demo_walk-turn-run.npz")["pose"].shape == (10, 63)
+
+
+@pytest.mark.parametrize("command", ["train", "bench", "demo"])
+def test_every_set_flag_counts_when_set_is_repeated(command):
+    # `--set a --set b` is how most people write two changes: each --set adds, none replaces
+    # (the bench and the demo used to keep only the last one, silently training another run)
+    from motionflows import cli_bench, demo
+
+    sets = ["--set", "train.steps=54000", "tau=3", "--set", "train.seed=1"]
+    parsers = {
+        "train": lambda: cli.build_parser().parse_args(["train", "moglow", *sets]),
+        "bench": lambda: cli_bench.build_parser().parse_args(sets),
+        "demo": lambda: demo.build_parser().parse_args(sets),
+    }
+    args = parsers[command]()
+    assert args.overrides == ["train.steps=54000", "tau=3", "train.seed=1"]
+    if command == "bench":
+        assert cli_bench._command(args, ("moglow",)).endswith(
+            "--set train.steps=54000 tau=3 train.seed=1"
+        )

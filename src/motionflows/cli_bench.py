@@ -47,12 +47,11 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     p.add_argument("--runs-dir", default="runs", help="where runs are found and trained")
     p.add_argument("--temperature", type=float, default=1.0, help="sampling temperature")
     p.add_argument("--seed", type=int, default=0, help="seed of the scoring and sampling keys")
-    p.add_argument(
-        "--set",
-        nargs="*",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config changes for every model whose config has the key (dotted or unique bare "
+    from motionflows.cli_train import add_cpu_devices_argument, add_set_argument
+
+    add_set_argument(
+        p,
+        "config changes for every model whose config has the key (dotted or unique bare "
         "names, as in `motionflows train --set`), e.g. train.seed=1 for a second training "
         "seed; changed runs are trained, not reused, unless only an experiment's "
         "SAMPLING_FIELDS differ (e.g. sampler=prior); data.* keys are refused (use --data)",
@@ -84,8 +83,6 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
         action="store_true",
         help="also score each model's samples after the foot-lock post-process (extra rows)",
     )
-    from motionflows.cli_train import add_cpu_devices_argument
-
     add_cpu_devices_argument(p)
     return p
 
@@ -94,7 +91,7 @@ def _estimate(args: argparse.Namespace, names: tuple[str, ...]) -> None:
     from motionflows.bench.benchmark import jsonable
     from motionflows.bench.estimate import estimate_training
 
-    est = estimate_training(args.data, names, args.budget, overrides=args.set)
+    est = estimate_training(args.data, names, args.budget, overrides=args.overrides)
     Path(args.out).mkdir(parents=True, exist_ok=True)
     (Path(args.out) / "estimate.json").write_text(json.dumps(jsonable(est), indent=2))
     for name, e in est["models"].items():
@@ -115,8 +112,8 @@ def _command(args: argparse.Namespace, names: tuple[str, ...]) -> str:
         extra += f" --temperature {args.temperature:g}"
     if args.seed:
         extra += f" --seed {args.seed}"
-    if args.set:
-        extra += " --set " + " ".join(args.set)
+    if args.overrides:
+        extra += " --set " + " ".join(args.overrides)
     if args.foot_lock:
         extra += " --foot-lock"
     if args.cpu_devices is not None:
@@ -145,7 +142,7 @@ def main(args: argparse.Namespace | Sequence[str] | None = None) -> int:
             data=args.data, models=names, budget=args.budget, out=args.out,
             runs_dir=args.runs_dir, temperature=args.temperature, seed=args.seed,
             performer_split=args.performer_split, retrain=args.retrain, gifs=args.gifs,
-            command=_command(args, names), test_data=args.test_data, overrides=args.set,
+            command=_command(args, names), test_data=args.test_data, overrides=args.overrides,
             training_bars=args.training_bars, foot_lock=args.foot_lock,
         )  # fmt: skip
     except (RunError, ValueError, MotionDataError) as err:

@@ -28,6 +28,20 @@ from motionflows.errors import RunError
 from motionflows.run import evaluate_run
 
 
+def add_set_argument(parser: argparse.ArgumentParser, help: str) -> None:
+    """``--set KEY=VALUE ...`` into ``args.overrides`` (a flat list, in order): repeatable,
+    every ``--set`` adds to the ones before it (``--set a=1 --set b=2`` is both)."""
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="extend",
+        nargs="+",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"{help}; repeatable",
+    )
+
+
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags shared by ``python -m experiments.<name>`` and ``motionflows train``."""
     parser.add_argument("--preset", default="quick", help="named config (default: quick)")
@@ -35,15 +49,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
         "--data", default=None, help="synthetic | bandai | bandai:DIR | bvh:DIR | DIR"
     )
     parser.add_argument("--steps", type=int, default=None, help="training steps (train.steps)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        nargs="+",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config override, e.g. train.lr=1e-3",
-    )
+    add_set_argument(parser, "config override, e.g. train.lr=1e-3")
     parser.add_argument("--run-name", default=None, help="run directory name")
     parser.add_argument("--runs-dir", default="runs", help="root of run directories")
     parser.add_argument(
@@ -70,7 +76,7 @@ def add_cpu_devices_argument(parser: argparse.ArgumentParser) -> None:
 
 def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, Path]:
     """(config, preset, run_dir) from parsed train flags (resume reads config.json)."""
-    overrides = [item for group in args.overrides for item in group]
+    overrides = args.overrides
     if args.resume:
         run_dir = (
             Path(args.runs_dir) / module.NAME / args.run_name

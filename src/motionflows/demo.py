@@ -110,7 +110,10 @@ def train_demo(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The demo's flags (``python -m motionflows.demo --help``)."""
+    from motionflows.cli_train import add_set_argument
+
     parser = argparse.ArgumentParser(prog="python -m motionflows.demo", description=__doc__)
     parser.add_argument("--experiment", default="moglow", help="the experiment to train")
     parser.add_argument("--steps", type=int, default=None, help="override the quick steps")
@@ -120,15 +123,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-pretrained", dest="pretrained", action="store_false")
     parser.add_argument("--no-train", dest="train", action="store_false")
     parser.add_argument("--no-gif", dest="gif", action="store_false")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        nargs="+",
-        default=[],
-        metavar="KEY=VALUE",
-        help="config overrides of the trained model, as for `motionflows train`",
-    )
-    args = parser.parse_args(argv)
+    add_set_argument(parser, "config overrides of the trained model, as for `motionflows train`")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     from motionflows.errors import MotionflowsError
 
     t0 = time.perf_counter()
