@@ -234,3 +234,26 @@ def test_optimizer_clips_values_then_norm_and_warms_up():
     assert float(out["a"][0]) == 0.0  # warm-up: the first step has lr 0
     with pytest.raises(ValueError, match="optimizer"):
         make_optimizer(dataclasses.replace(tc, optimizer="sgdd"))
+
+
+def test_resume_refuses_data_whose_standardiser_changed_and_keeps_the_saved_one(tmp_path):
+    # the checkpoints are in the units of the standardiser the run started with: resuming on
+    # data that standardises differently (takes added to the folder, another --data) would
+    # train on in other units and overwrite standardizer.json, losing the run's own units
+    data = FakeDataset()
+
+    def interrupt(step, out):
+        if step == 2:
+            raise KeyboardInterrupt
+
+    run = tmp_path / "run"
+    train(fake, CONFIG, run_dir=run, dataset=data, progress=False, on_step=interrupt)
+    saved = (run / "standardizer.json").read_text()
+    changed = FakeDataset()
+    changed.standardizer.pose_mean = changed.standardizer.pose_mean + 0.05
+    with pytest.raises(ValueError, match="standardi[sz]er.*changed|changed.*standardi[sz]er"):
+        train(fake, CONFIG, run_dir=run, dataset=changed, progress=False, resume=True)
+    assert (run / "standardizer.json").read_text() == saved
+    # the same data resumes (a float32 round trip of the saved values is not a change)
+    resumed = train(fake, CONFIG, run_dir=run, dataset=data, progress=False, resume=True)
+    assert resumed.status == "finished"

@@ -236,6 +236,8 @@ def train(
     if resume and not (run_dir / "config.json").is_file():
         raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
     dataset = config.data.load() if dataset is None else dataset
+    if resume:
+        _check_same_standardizer(run_dir, dataset.standardizer)
     mesh = data_mesh() if mesh is None else mesh
     if _primary():  # the other processes of a multi-process run write nothing here
         for sub in ("checkpoints", "samples"):
@@ -284,6 +286,28 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
         file=sys.stderr,
     )
     return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
+
+
+def _check_same_standardizer(run_dir: Path, standardizer) -> None:
+    """RunError if ``run_dir``'s saved ``standardizer.json`` differs from ``standardizer``
+    (fitted on the data now loaded): the checkpoints are in the saved one's units, so the
+    data changed since the run started (takes added, another ``--data``)."""
+    path = run_dir / "standardizer.json"
+    if not path.is_file():
+        return
+    saved = load_standardizer(run_dir).to_dict()
+    now = standardizer.to_dict()
+    changed = [
+        key
+        for key, value in saved.items()
+        if not np.allclose(np.asarray(now[key], np.float32), value, rtol=1e-5, atol=1e-7)
+    ]
+    if changed:
+        raise RunError(
+            f"cannot resume {run_dir}: its training data changed since it started (the "
+            f"standardizer fitted on the data now differs in {', '.join(changed)} from its "
+            "standardizer.json); resume with the data it trained on, or start a new run"
+        )
 
 
 class _Loop:
