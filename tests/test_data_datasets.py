@@ -288,3 +288,22 @@ def test_load_control_file(tmp_path):
     with pytest.raises(ValueError, match="non-finite"):
         load_control(tmp_path / "nan.npy")
     assert load_control("run", 2.0).shape == (40, 3)
+
+
+def test_foot_lock_changes_the_training_takes_only():
+    kw = dict(n_clips=12, seconds=6.0, window=40, hop=20, cache=False)
+    plain = load_dataset("synthetic", **kw)
+    locked = load_dataset("synthetic", foot_lock=True, **kw)
+    for split in ("val", "test"):  # validated and scored on the takes as recorded
+        np.testing.assert_array_equal(locked.split(split).pose, plain.split(split).pose)
+    assert np.abs(locked.train.pose - plain.train.pose).max() > 1e-3
+    np.testing.assert_array_equal(locked.train.control, plain.train.control)
+    assert locked.info["augment"]["foot_lock"] and not plain.info["augment"]["foot_lock"]
+    assert "feet locked" in locked.summary() and "feet locked" not in plain.summary()
+    # a config field, as the other augmentations, that the bench's --set takes
+    config = DataConfig(synthetic_clips=12, synthetic_seconds=6.0, window=40, hop=20)
+    from_config = dataclasses.replace(config, foot_lock=True).load()
+    np.testing.assert_array_equal(from_config.train.pose, locked.train.pose)
+    from motionflows.bench.budgets import TRAINING_DATA_SETTABLE
+
+    assert "data.foot_lock" in TRAINING_DATA_SETTABLE

@@ -11,6 +11,7 @@ from motionflows.config import DataConfig
 from motionflows.data import clip_from_bvh
 from motionflows.data.augment import (
     augment_clips,
+    lock_clip,
     mirror_clip,
     reverse_clip,
     reverse_time,
@@ -26,6 +27,7 @@ from motionflows.data.features import (
 )
 from motionflows.data.names import JOINT_NAMES, NUM_JOINTS
 from motionflows.data.synthetic import generate, straight_walk
+from motionflows.evaluation.motion import bone_lengths, foot_sliding
 
 DEV = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "bandai_locomotion_dev"
 
@@ -292,3 +294,30 @@ def test_carry_to_next_root_keeps_joints_still_in_the_world():
         pose[1:],
         atol=1e-5,
     )
+
+
+def _creeping(seed=6):
+    """A synthetic take whose ankles and toes creep back and forth by up to 2 cm."""
+    clip = generate(1, 6.0, seed=seed)[0]
+    pose = clip.pose.copy()
+    for joint in (3, 4, 7, 8):  # both ankles and toes
+        pose[:, 3 * joint + 2] += 0.02 * np.sin(0.7 * np.arange(len(pose)))
+    return type(clip)(pose, clip.control, clip.fps, clip.name, dict(clip.meta))
+
+
+def test_lock_clip_plants_the_feet_of_a_training_take_and_keeps_its_bones():
+    clip = _creeping()
+    locked = lock_clip(clip)
+    slide = [foot_sliding(c.pose, c.control, fps=c.fps) for c in (clip, locked)]
+    assert slide[0] > 0.1 and slide[1] < 0.2 * slide[0]
+    np.testing.assert_allclose(bone_lengths(locked.pose), bone_lengths(clip.pose), atol=1e-4)
+    np.testing.assert_array_equal(locked.control, clip.control)
+    assert locked.meta["foot_locked"] and locked.name == clip.name
+    # augment_clips locks the takes before the copies: the mirrored and the tempo
+    # replays of a locked take are planted too
+    out = augment_clips([clip], mirror=True, reverse=False, tempo=1.25, foot_lock=True)
+    assert len(out) == 6 and all(c.meta["foot_locked"] for c in out)
+    for c in out:
+        assert foot_sliding(c.pose, c.control, fps=c.fps) < 0.3 * slide[0]
+    plain = augment_clips([clip], mirror=True, reverse=False)
+    assert not any(c.meta.get("foot_locked") for c in plain)

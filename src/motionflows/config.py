@@ -86,6 +86,10 @@ class DataConfig:
     # speed (data/augment.py; 1 = off); tempo_replay "slower" or "faster" keeps one of them
     tempo: float = 1.0
     tempo_replay: str = "both"
+    # the training takes' planted feet held where they stand (data/augment.py, lock_clip:
+    # the footskate clean-up of motionflows.foot_lock) before the other augmentations;
+    # validation and test takes stay as recorded
+    foot_lock: bool = False
     # keep only the takes of these styles, in every split (metadata "style"; None = all)
     styles: tuple[str, ...] | None = None
     # keep this share of each performer's, content's and style's training takes (nested
@@ -133,6 +137,7 @@ class DataConfig:
             styles=self.styles,
             train_fraction=self.train_fraction,
             short=self.short,
+            foot_lock=self.foot_lock,
         )
 
 

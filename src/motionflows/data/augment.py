@@ -12,6 +12,11 @@ Shapes: pose (..., T, 63), control (..., T, 3) with (forward, sideways, turn).
   s < T-1, and the final control, whose old counterpart lies outside the sequence, is
   ``rev(c[T-1])`` (an approximation at one boundary frame that keeps the map an
   involution).
+* Foot lock: the take's planted feet held where they stand
+  (:func:`motionflows.foot_lock.foot_lock`, the footskate clean-up: each stance of the
+  calibrated contact rule anchored at its mean position, the knee re-solved so that every
+  bone keeps its length; the control is unchanged). Mocap's own foot sliding is cleaned
+  from the training takes this way before the other copies are made.
 * Tempo ``r``: the take played r times as fast. Its world joint positions
   (:func:`~motionflows.data.features.world_from_features`) are treated as recorded at
   ``r * fps`` and their features rebuilt at ``fps``
@@ -85,6 +90,15 @@ def reverse_clip(clip: Clip) -> Clip:
     )
 
 
+def lock_clip(clip: Clip) -> Clip:
+    """The take with its planted feet held (:func:`motionflows.foot_lock.foot_lock` on its
+    poses and controls; the controls, name and fps kept; ``meta["foot_locked"]``)."""
+    from motionflows.foot_lock import foot_lock  # the foot lock scores with the evaluation
+
+    pose = foot_lock(clip.pose, clip.control)
+    return Clip(pose, clip.control, clip.fps, clip.name, dict(clip.meta, foot_locked=True))
+
+
 def tempo_clip(clip: Clip, rate: float, *, root_sigma_s: float = ROOT_SIGMA_S) -> Clip:
     """The take played ``rate`` times as fast (see the module docstring); ``root_sigma_s``
     must be the one its features were made with."""
@@ -123,12 +137,15 @@ def augment_clips(
     tempo: float = 1.0,
     tempo_replay: str = "both",
     root_sigma_s: float = ROOT_SIGMA_S,
+    foot_lock: bool = False,
 ) -> list[Clip]:
     """Originals plus mirrored and/or reversed copies and, with ``tempo`` != 1, all of
     those also played at the rates of :func:`tempo_rates` (``1 / tempo`` and/or ``tempo``
-    times their speed; same take names: splits stay by take)."""
+    times their speed; same take names: splits stay by take). With ``foot_lock`` the
+    originals are foot-locked (:func:`lock_clip`) first, so every copy is too."""
     rates = tempo_rates(tempo, tempo_replay)
-    out = list(clips)
+    out = [lock_clip(c) for c in clips] if foot_lock else list(clips)
+    clips = list(out)
     if mirror:
         out += [mirror_clip(c) for c in clips]
     if reverse:

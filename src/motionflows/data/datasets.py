@@ -189,6 +189,8 @@ class MotionDataset:
         kinds = [k for k, on in (("mirrored", "mirror"), ("reversed", "reverse")) if aug.get(on)]
         if aug.get("tempo", 1.0) != 1.0:
             kinds.append(f"tempo {aug['tempo']:g} {aug.get('tempo_replay', 'both')}")
+        if aug.get("foot_lock"):
+            kinds.append("feet locked")
         train += f" -> {len(self.train)} windows ({', '.join(kinds) or 'as recorded'})"
         held = "; ".join(f"{s} {takes[s]} takes ({len(self.split(s))} windows)" for s in SPLITS[1:])
         return f"{info.get('source')}, split by {info.get('split_by')}: {train}; {held}"
@@ -338,6 +340,7 @@ def _split_windows(
     tempo: float = 1.0,
     root_sigma_s: float = ROOT_SIGMA_S,
     tempo_replay: str = "both",
+    foot_lock: bool = False,
 ) -> tuple[dict[str, WindowSet], dict[str, dict]]:
     """The windows and window statistics of each split (training takes augmented first);
     raise if the training split has no window."""
@@ -352,6 +355,7 @@ def _split_windows(
                 tempo=tempo,
                 tempo_replay=tempo_replay,
                 root_sigma_s=root_sigma_s,
+                foot_lock=foot_lock,
             )
         splits[s], stats[s] = make_windows(
             cs, int(window), int(hop), short=short, min_frames=min_frames
@@ -479,6 +483,7 @@ def load_dataset(
     tempo_replay: str = "both",
     styles=None,
     train_fraction: float = 1.0,
+    foot_lock: bool = False,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -519,6 +524,7 @@ def load_dataset(
         tempo,
         root_sigma_s,
         tempo_replay,
+        foot_lock,
     )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     _warn_dropped(dropped, window, short, min_frames)
@@ -539,6 +545,7 @@ def load_dataset(
             "reverse": bool(reverse),
             "tempo": float(tempo),
             "tempo_replay": tempo_replay,
+            "foot_lock": bool(foot_lock),
         },
         **_split_info(split_clips, splits, stats, dropped),
         "seconds": sum(len(c) for c in clips) / float(fps),
