@@ -93,7 +93,8 @@ def reverse_clip(clip: Clip) -> Clip:
 def lock_clip(clip: Clip) -> Clip:
     """The take with its planted feet held (:func:`motionflows.foot_lock.foot_lock` on its
     poses and controls; the controls, name and fps kept; ``meta["foot_locked"]``)."""
-    from motionflows.foot_lock import foot_lock  # the foot lock scores with the evaluation
+    # imported here: motionflows.foot_lock needs motionflows.evaluation, which needs this package
+    from motionflows.foot_lock import foot_lock
 
     pose = foot_lock(clip.pose, clip.control)
     return Clip(pose, clip.control, clip.fps, clip.name, dict(clip.meta, foot_locked=True))
@@ -144,8 +145,9 @@ def augment_clips(
     times their speed; same take names: splits stay by take). With ``foot_lock`` the
     originals are foot-locked (:func:`lock_clip`) first, so every copy is too."""
     rates = tempo_rates(tempo, tempo_replay)
-    out = [lock_clip(c) for c in clips] if foot_lock else list(clips)
-    clips = list(out)
+    if foot_lock:
+        clips = [lock_clip(c) for c in clips]
+    out = list(clips)
     if mirror:
         out += [mirror_clip(c) for c in clips]
     if reverse:
