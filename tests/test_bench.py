@@ -564,3 +564,15 @@ def test_models_and_presets_come_from_the_experiments(monkeypatch):
     monkeypatch.delitem(bench.load_experiment("linear_ar").PRESETS, "smoke")
     with pytest.raises(RunError, match="no preset 'smoke'"):
         bench.bench_config("linear_ar", "smoke", data)
+
+
+def test_report_names_a_models_own_augmentation_in_words():
+    from motionflows.bench.report import _own_training_data
+
+    bench = {"mirror": True, "tempo": 1.0, "foot_lock": False}
+    own = {"mirror": False, "tempo": 1.25, "foot_lock": True}
+    results = {"data": {"config": bench}, "models": {"moglow": {"config": {"data": own}}}}
+    text = _own_training_data(results)
+    assert "moglow (mirror off, tempo 1.25, foot_lock on)" in text
+    results["models"]["moglow"]["config"]["data"] = bench
+    assert _own_training_data(results) == ""

@@ -276,6 +276,13 @@ def _header(results: dict) -> list[str]:
     ]
 
 
+def _setting(value) -> str:
+    """A config value as a sentence says it: booleans as "on" / "off"."""
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return str(value)
+
+
 def _own_training_data(results: dict) -> str:
     """Sentences naming the models trained with other training augmentation than the
     bench's data (their preset's, or ``--set data.tempo=...``) or on a share of its
@@ -287,7 +294,9 @@ def _own_training_data(results: dict) -> str:
     for name, entry in results.get("models", {}).items():
         data = (entry.get("config") or {}).get("data") or {}
         diff = [
-            f"{k} {data[k]}" for k in AUGMENTATION_FIELDS if k in data and data[k] != bench.get(k)
+            f"{k} {_setting(data[k])}"
+            for k in AUGMENTATION_FIELDS
+            if k in data and data[k] != bench.get(k)
         ]
         if diff:
             own.append(f"{name} ({', '.join(diff)})")
