@@ -576,3 +576,18 @@ def test_report_names_a_models_own_augmentation_in_words():
     assert "moglow (mirror off, tempo 1.25, foot_lock on)" in text
     results["models"]["moglow"]["config"]["data"] = bench
     assert _own_training_data(results) == ""
+
+
+def test_estimate_counts_the_validation_passes_of_the_training(capsys):
+    # a budget's projection is steps x s/step plus each validation pass the run will make
+    from motionflows.bench.estimate import estimate_training
+
+    est = estimate_training(
+        "synthetic", "moglow", "smoke", progress=None, overrides=["train.eval_every=10"]
+    )
+    e = est["models"]["moglow"]
+    assert e["steps"] == 30 and e["validations"] == 3  # at steps 10, 20 and 30
+    assert e["seconds_per_step"] > 0 and e["validation_seconds"] > 0
+    total = e["seconds_per_step"] * 30 + 3 * e["validation_seconds"]
+    assert e["projected_hours"] == pytest.approx(total / 3600)
+    assert est["total_hours"] == pytest.approx(e["projected_hours"])

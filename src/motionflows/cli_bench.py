@@ -96,7 +96,12 @@ def _estimate(args: argparse.Namespace, names: tuple[str, ...]) -> None:
     (Path(args.out) / "estimate.json").write_text(json.dumps(jsonable(est), indent=2))
     for name, e in est["models"].items():
         sps = e["seconds_per_step"]
-        per = f"{sps:.3f} s/step x {e['steps']} steps" if sps else e.get("note", "")
+        per = (
+            f"{sps:.3f} s/step x {e['steps']} steps + {e['validations']} validation"
+            f"{'' if e['validations'] == 1 else 's'} x {e['validation_seconds']:.1f} s"
+            if sps
+            else e.get("note", "")
+        )
         print(f"{name:>10}: {per} = {e['projected_hours']:.2f} h")
     print(
         f"{'total':>10}: {est['total_hours']:.2f} h of training ({args.budget} budget, "

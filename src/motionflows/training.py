@@ -13,7 +13,7 @@ resumed run reproduces the loss curve of an uninterrupted one. Modules defining
 
 Bookkeeping (see ``motionflows.runs``): ``config.json``, ``standardizer.json``,
 ``metrics.jsonl`` (loss, grad_norm, lr, steps_per_s, frames_per_s, skipped; val_nll in
-nats/frame in metres and val_bits in bits/frame standardised), ``loss.png``, orbax
+nats/frame in metres, val_bits in bits/frame standardised, val_seconds), ``loss.png``, orbax
 checkpoints (``motionflows.checkpoints``: latest N plus best by validation), a progress
 bar with ETA on stderr. Ctrl-C (SIGINT) finishes the current step, writes a checkpoint and
 returns; ``resume=True`` continues from the latest checkpoint.
@@ -406,15 +406,17 @@ class _Loop:
         bar.update(done, f"loss {loss_txt} {rate:.2f} it/s")
 
     def validate(self, done: int, windows) -> None:
-        """Validation row at step ``done``; a new best validation NLL is checkpointed."""
+        """Validation row at step ``done`` (with ``val_seconds``, the pass's wall time, the
+        first one's including compilation); a new best validation NLL is checkpointed."""
+        t0 = time.perf_counter()
         val = validate(
             self.module, self.config, self.model(), self.dataset, key=self.keys["eval"],
             evaluate_fn=self.eval_fn, windows=windows,
         )  # fmt: skip
+        seconds = time.perf_counter() - t0  # validate returns floats: the pass has finished
         if _primary():
-            runs.append_metrics(
-                self.run_dir, {"step": done, **{k: _scalar(v) for k, v in val.items()}}
-            )
+            row = {"step": done, **{k: _scalar(v) for k, v in val.items()}}
+            runs.append_metrics(self.run_dir, {**row, "val_seconds": seconds})
             if time.perf_counter() - self.t_plot > 60.0:  # plotting costs ~1 s
                 runs.plot_losses(self.run_dir)
                 self.t_plot = time.perf_counter()

@@ -28,11 +28,16 @@ def estimate_training(
     """Project the training time of a budget on this machine without running it.
 
     For each model, trains ``probe_steps`` steps of the exact config the bench would train
-    (in a temporary folder, through ``motionflows.training.train``) and multiplies the median
-    steady-state seconds per step (the first step, which compiles, is dropped) by the
-    config's ``train.steps``. Validation passes during training are not included. Returns
-    ``{"models": {model: {"seconds_per_step", "steps", "projected_hours", ...}},
-    "total_hours": ...}``.
+    (in a temporary folder, through ``motionflows.training.train``) and projects
+
+        hours = (steps x seconds per step + validations x seconds per validation) / 3600
+
+    with the median steady-state seconds per step (the first step, which compiles, is
+    dropped), ``validations`` = the passes the run makes (every ``train.eval_every`` steps
+    and at the last), and the wall time of the probe's second validation pass of the
+    config's ``train.eval_batches`` (the first compiles). Checkpoint writes are not counted.
+    Returns ``{"models": {model: {"seconds_per_step", "steps", "validation_seconds",
+    "validations", "projected_hours", ...}}, "total_hours": ...}``.
     """
     data_cfg = parse_data_spec(data, budget)
     dataset = data_cfg.load()
@@ -54,13 +59,17 @@ def _probe(exp, config, preset: str, dataset, probe_steps: int, progress, name: 
     from motionflows.runs import read_metrics
 
     steps = int(config.train.steps)
+    probe_steps = max(probe_steps, 2)
     probe = dataclasses.replace(
         config,
         train=dataclasses.replace(
-            config.train, steps=max(probe_steps, 2) if steps > 0 else 0, log_every=1,
-            eval_every=10**9, eval_batches=1, checkpoint_every=10**9,
+            config.train,
+            steps=probe_steps if steps > 0 else 0,
+            log_every=1,
+            eval_every=probe_steps // 2,
+            checkpoint_every=10**9,
         ),
-    )  # fmt: skip
+    )  # fmt: skip  (two validations: half-way and at the end)
     log(progress, f"{name}: timing {probe.train.steps} steps of the {preset} config")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
@@ -78,10 +87,14 @@ def _probe(exp, config, preset: str, dataset, probe_steps: int, progress, name: 
         }
     rates = [r["steps_per_s"] for r in rows if isinstance(r.get("steps_per_s"), int | float)]
     sec = 1.0 / float(np.median(rates[1:] or rates))
+    val_sec = [r["val_seconds"] for r in rows if "val_seconds" in r][-1]
+    validations = -(-steps // int(config.train.eval_every))  # ceil: the last step validates
     return {
         "steps": steps,
         "seconds_per_step": sec,
+        "validation_seconds": val_sec,
+        "validations": validations,
         "batch_size": int(config.train.batch_size),
-        "projected_hours": sec * steps / 3600,
+        "projected_hours": (sec * steps + validations * val_sec) / 3600,
         "probe_wall_s": wall,
     }
