@@ -59,7 +59,7 @@ def _probe(exp, config, preset: str, dataset, probe_steps: int, progress, name: 
     from motionflows.runs import read_metrics
 
     steps = int(config.train.steps)
-    probe_steps = max(probe_steps, 2)
+    probe_steps = max(probe_steps, 2)  # two validations: half-way (compiles) and at the end
     probe = dataclasses.replace(
         config,
         train=dataclasses.replace(
@@ -69,7 +69,7 @@ def _probe(exp, config, preset: str, dataset, probe_steps: int, progress, name: 
             eval_every=probe_steps // 2,
             checkpoint_every=10**9,
         ),
-    )  # fmt: skip  (two validations: half-way and at the end)
+    )
     log(progress, f"{name}: timing {probe.train.steps} steps of the {preset} config")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
