@@ -76,7 +76,6 @@ def add_cpu_devices_argument(parser: argparse.ArgumentParser) -> None:
 
 def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, Path]:
     """(config, preset, run_dir) from parsed train flags (resume reads config.json)."""
-    overrides = args.overrides
     if args.resume:
         run_dir = (
             Path(args.runs_dir) / module.NAME / args.run_name
@@ -106,7 +105,7 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
             config, train=dataclasses.replace(config.train, steps=args.steps)
         )
     try:
-        config = cfg.apply_overrides(config, overrides)
+        config = cfg.apply_overrides(config, args.overrides)
     except ValueError as err:
         raise RunError(str(err)) from None
     return config, preset, run_dir
