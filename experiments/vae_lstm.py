@@ -133,8 +133,11 @@ PRESETS: dict[str, Config] = {
     # 33 mm with "prior", natural 29 mm), and with a learned prior, whose latents follow each
     # other, the figure steps instead of being dragged (foot sliding 0.19-0.21 against
     # 0.73 m/s on the unseen performer, two seeds; docs/readme/vae_lstm.md#a-learned-prior).
+    # Trained on foot-locked takes (the training takes' planted feet held; validation and
+    # test as recorded): 0.170 / 0.177 m/s against 0.190 / 0.207 (two seeds each), the rest
+    # in the seeds' spread (docs/readme/cpu_budget.md, "Training on foot-locked takes").
     "cpu": Config(
-        data=DataConfig(fps=20.0, window=80, hop=10),
+        data=DataConfig(fps=20.0, window=80, hop=10, foot_lock=True),
         train=TrainConfig(
             steps=24_000, batch_size=32, lr=1e-3, warmup_steps=100, schedule="cosine",
             min_lr_ratio=0.05, eval_every=1000, eval_batches=4, log_every=50,
