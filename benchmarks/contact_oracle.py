@@ -42,6 +42,7 @@ import experiments.moglow as moglow
 from motionflows import bench
 from motionflows.bench.benchmark import jsonable
 from motionflows.bench.budgets import BUDGET_SIZES, bench_config, parse_data_spec
+from motionflows.cli_train import add_set_argument
 from motionflows.config import apply_overrides
 from motionflows.data.names import CONTROL_DIM
 from motionflows.evaluation.motion import foot_contacts, foot_speeds
@@ -143,20 +144,24 @@ def score(run_dir: Path, test, idx: np.ndarray, fps: float, *, temperature: floa
             "control_dim": int(model.control_dim), **metrics}  # fmt: skip
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--steps", type=int, default=None, help="training steps (preset: 8000)")
     p.add_argument("--seed", type=int, default=0, help="training seed (train.seed)")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    add_set_argument(p, "change the MoGlow cpu preset (a config field)")
     p.add_argument("--baseline", nargs="*", default=[], help="runs without contacts to score")
     p.add_argument("--temperature", type=float, default=0.8)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     out = Path(args.out)
     data = parse_data_spec("bandai", "cpu")
     config, _ = bench_config("moglow", "cpu", data, moglow)
-    overrides = [f"train.seed={args.seed}", *args.set]
+    overrides = [f"train.seed={args.seed}", *args.overrides]
     if args.steps is not None:
         overrides.append(f"train.steps={args.steps}")
     config = apply_overrides(config, overrides)

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from motionflows import bench, runs
+from motionflows.cli_train import add_set_argument
 from motionflows.config import apply_overrides
 from motionflows.run import restore_run
 from motionflows.training import train
@@ -90,7 +91,7 @@ def score(
     return rows, nll, gt, int(saved["meta"]["step"])
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("experiment")
     p.add_argument("--preset", default="quick")
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="performer", choices=["take", "performer"])
     p.add_argument("--steps", default="400,800")
     p.add_argument("--temperatures", default="1.0,0.8,0.6")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE")
+    add_set_argument(p, "change the preset (a config field)")
     p.add_argument("--windows", type=int, default=256, help="test windows scored")
     p.add_argument("--sample-windows", type=int, default=64, help="test controls sampled")
     p.add_argument("--seed", type=int, default=0)
@@ -110,7 +111,11 @@ def main(argv=None) -> int:
         "(the `steps` column is that checkpoint's step)",
     )
     p.add_argument("--out", required=True)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     exp = runs.resolve_experiment(args.experiment)
     config = exp.PRESETS[args.preset]
@@ -124,7 +129,7 @@ def main(argv=None) -> int:
             split_by=args.split,
         ),
     )
-    config = apply_overrides(config, args.set)
+    config = apply_overrides(config, args.overrides)
     out = Path(args.out)
     run_dir = out / "run"
     temps = _parse_floats(args.temperatures)

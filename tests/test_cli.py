@@ -226,6 +226,18 @@ def test_render_npz_and_demo_with_the_baseline(tmp_path, capsys, fake_data):
     assert np.load(run / "samples" / "demo_walk-turn-run.npz")["pose"].shape == (10, 63)
 
 
+@pytest.mark.parametrize(
+    "script, required",
+    [("model_quality", ["vae_lstm", "--out", "q"]), ("contact_oracle", ["--out", "q"])],
+)
+def test_benchmark_scripts_count_every_repeated_set_flag(benchmark_script, script, required):
+    # the scripts that train a preset take --set as the CLI does: `--set a --set b` is both
+    # (they kept only the last --set, scoring a config other than the one asked)
+    sets = ["--set", "train.steps=54000", "tau=3", "--set", "train.seed=1"]
+    args = benchmark_script(script).build_parser().parse_args([*required, *sets])
+    assert args.overrides == ["train.steps=54000", "tau=3", "train.seed=1"]
+
+
 @pytest.mark.parametrize("command", ["train", "bench", "demo"])
 def test_every_set_flag_counts_when_set_is_repeated(command):
     # `--set a --set b` is how most people write two changes: each --set adds, none replaces
