@@ -3,14 +3,16 @@
 Trains (or resumes) one run to each milestone of ``--steps`` and, at every milestone,
 samples the same test controls at each of ``--temperatures`` and scores the motion metrics
 of ``motionflows.evaluation.motion`` (the bench's definitions, ground truth as reference)
-and the test likelihood of every scope the experiment defines. Prints one JSON object per
+and the test likelihood of every scope the experiment defines; beside the ground truth, the
+bench's two rows of real training motion (the training takes on their own controls, and the
+nearest training window on each scored control). Prints one JSON object per
 (milestone, temperature) and writes ``OUT/quality.jsonl``, ``OUT/QUALITY.md`` and
 ``OUT/quality.png``. Used for the MoGlow jitter diagnosis (docs/readme/moglow_quality.md)::
 
     python benchmarks/model_quality.py moglow --preset quick --data bandai --split performer \\
         --steps 400,800,1600 --temperatures 1.0,0.8,0.6 --out runs/quality/moglow-quick
 
-``--set key=value`` overrides config fields (the ``motionflows train`` grammar); the run
+``--set key=value`` overrides config fields (the ``motionflows train`` grammar; repeatable); the run
 directory is ``OUT/run``; an existing run is resumed (milestones already passed are only
 re-scored).
 """
@@ -27,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from motionflows import bench, runs
+from motionflows.bench.report import REFERENCE_ROWS
 from motionflows.cli_train import add_set_argument
 from motionflows.config import apply_overrides
 from motionflows.run import restore_run
@@ -49,10 +52,13 @@ def score(
     split: str = "test",
     checkpoint: str = "latest",
 ):
-    """``(rows, nll, gt, step)``: rows of motion metrics (per temperature) and the
+    """``(rows, nll, gt, refs, step)``: rows of motion metrics (per temperature) and the
     likelihood of a checkpoint, on the windows and controls of ``split``; the ground truth's
-    metrics; the training step of the checkpoint scored (a run's best checkpoint can be
-    older than its last step). ``dataset=None`` loads the run's own data."""
+    metrics; the bench's two reference rows of real training motion scored alike
+    (:func:`motionflows.bench.data_references`: the training split of ``dataset``, with
+    the run's own augmentation); the training step of the checkpoint scored (a run's best
+    checkpoint can be older than its last step). ``dataset=None`` loads the run's own
+    data."""
     import jax
 
     exp, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
@@ -88,7 +94,8 @@ def score(
            for s, r in lik.items()}  # fmt: skip
     gt = bench.motion_metrics(gt_m, control_m, gt_m, None, fps)
     gt["diversity"] = bench.natural_diversity_of(part)
-    return rows, nll, gt, int(saved["meta"]["step"])
+    refs = bench.data_references(dataset.train, gt_m, control_m, fps)
+    return rows, nll, gt, refs, int(saved["meta"]["step"])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -136,14 +143,14 @@ def main(argv=None) -> int:
     results = []
     if args.run:  # score an existing run (its own data config) at its best checkpoint
         run_path = runs.resolve_run_dir(args.run)  # a path or pretrained:NAME
-        rows, nll, gt, step = score(run_path, None, temps, windows=args.windows,
+        rows, nll, gt, refs, step = score(run_path, None, temps, windows=args.windows,
                                     seed=args.seed, sample_windows=args.sample_windows,
                                     split=args.on, checkpoint="best")  # fmt: skip
         results = [{"steps": step, "train_s": None, "nll": nll, **row} for row in rows]
         for rec in results:
             print(json.dumps(rec), flush=True)
         out.mkdir(parents=True, exist_ok=True)
-        write_report(out, results, gt, " ".join(sys.argv))
+        write_report(out, results, gt, " ".join(sys.argv), refs)
         return 0
     dataset = config.data.load()
     for steps in [int(s) for s in args.steps.split(",")]:
@@ -153,7 +160,7 @@ def main(argv=None) -> int:
         train(exp, cfg, run_dir=run_dir, preset=args.preset, resume=resume, dataset=dataset,
               progress=False)  # fmt: skip
         train_s = time.perf_counter() - t0
-        rows, nll, gt, _ = score(
+        rows, nll, gt, refs, _ = score(
             run_dir,
             dataset,
             temps,
@@ -170,7 +177,7 @@ def main(argv=None) -> int:
     with open(out / "quality.jsonl", "w") as fh:
         for rec in results:
             fh.write(json.dumps(rec) + "\n")
-    write_report(out, results, gt, " ".join(sys.argv))
+    write_report(out, results, gt, " ".join(sys.argv), refs)
     return 0
 
 
@@ -178,8 +185,12 @@ COLUMNS = ("foot_sliding", "skate_ratio", "contact_rate", "bone_length_std", "je
            "fd_pose", "fd_window3", "diversity", "diverged")  # fmt: skip
 
 
-def write_report(out: Path, results: list[dict], gt: dict, command: str) -> None:
-    """QUALITY.md (a table) and quality.png (jerk and FD against steps per temperature)."""
+def write_report(
+    out: Path, results: list[dict], gt: dict, command: str, refs: dict | None = None
+) -> None:
+    """QUALITY.md (a table) and quality.png (jerk and FD against steps per temperature).
+    ``refs``: the reference rows of real training motion (:func:`score`), under the ground
+    truth's."""
     scopes = sorted(results[0]["nll"]) if results else []
     head = ["steps", "T", *COLUMNS, *(f"NLL {s}" for s in scopes)]
     lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -188,11 +199,23 @@ def write_report(out: Path, results: list[dict], gt: dict, command: str) -> None
         + " | ".join(f"{gt.get(c, float('nan')) or 0:.3f}" for c in COLUMNS)
         + " |" * (len(scopes) + 1)
     )
+    for ref, label in REFERENCE_ROWS.items():
+        row = (refs or {}).get(ref)
+        if row:
+            cells = [f"{row[c]:.3f}" if row.get(c) is not None else "n/a" for c in COLUMNS]
+            lines.append(f"| *{label}* | | " + " | ".join(cells) + " |" * (len(scopes) + 1))
     for r in results:
         cells = [str(r["steps"]), f"{r['temperature']:g}"]
         cells += [f"{r[c]:.3f}" if r.get(c) is not None else "n/a" for c in COLUMNS]
         cells += [f"{r['nll'][s]:.1f}" for s in scopes]
         lines.append("| " + " | ".join(cells) + " |")
+    if refs:
+        note = (
+            "Reference rows in italics: real motion of the training split, with the run's own"
+            " augmentation (mirrored, tempo or foot-locked takes where its data config asks),"
+            " scored like the samples (motionflows.bench.data_references)."
+        )
+        lines += ["", note]
     (out / "QUALITY.md").write_text("\n".join(lines) + "\n")
     try:
         import matplotlib

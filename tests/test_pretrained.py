@@ -168,7 +168,11 @@ def test_model_quality_labels_its_rows_with_the_step_it_scored(
     (row,) = [json.loads(line) for line in capsys.readouterr().out.splitlines()
               if line.startswith("{")]  # fmt: skip
     assert row["steps"] == 3
-    assert "| 3 | 1 |" in (tmp_path / "quality" / "QUALITY.md").read_text()
+    report = (tmp_path / "quality" / "QUALITY.md").read_text()
+    assert "| 3 | 1 |" in report
+    # the bench's two rows of real training motion beside the ground truth, scored alike
+    assert "| *training takes (own controls)* | |" in report
+    assert "| *nearest training window (test controls)* | |" in report
 
 
 def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, capsys):
