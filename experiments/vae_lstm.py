@@ -135,7 +135,7 @@ PRESETS: dict[str, Config] = {
     # 0.73 m/s on the unseen performer, two seeds; docs/readme/vae_lstm.md#a-learned-prior).
     # Trained on foot-locked takes (the training takes' planted feet held; validation and
     # test as recorded): 0.170 / 0.177 m/s against 0.190 / 0.207 (two seeds each), the rest
-    # in the seeds' spread (docs/readme/cpu_budget.md, "Training on foot-locked takes").
+    # about the same (docs/readme/cpu_budget.md, "Training on foot-locked takes").
     "cpu": Config(
         data=DataConfig(fps=20.0, window=80, hop=10, foot_lock=True),
         train=TrainConfig(
