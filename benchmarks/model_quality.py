@@ -192,6 +192,10 @@ def write_report(
     ``refs``: the reference rows of real training motion (:func:`score`), under the ground
     truth's."""
     scopes = sorted(results[0]["nll"]) if results else []
+
+    def metric_cells(row: dict) -> list[str]:
+        return [f"{row[c]:.3f}" if row.get(c) is not None else "n/a" for c in COLUMNS]
+
     head = ["steps", "T", *COLUMNS, *(f"NLL {s}" for s in scopes)]
     lines = [f"`{command}`", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines.append(
@@ -202,11 +206,10 @@ def write_report(
     for ref, label in REFERENCE_ROWS.items():
         row = (refs or {}).get(ref)
         if row:
-            cells = [f"{row[c]:.3f}" if row.get(c) is not None else "n/a" for c in COLUMNS]
+            cells = metric_cells(row)
             lines.append(f"| *{label}* | | " + " | ".join(cells) + " |" * (len(scopes) + 1))
     for r in results:
-        cells = [str(r["steps"]), f"{r['temperature']:g}"]
-        cells += [f"{r[c]:.3f}" if r.get(c) is not None else "n/a" for c in COLUMNS]
+        cells = [str(r["steps"]), f"{r['temperature']:g}", *metric_cells(r)]
         cells += [f"{r['nll'][s]:.1f}" for s in scopes]
         lines.append("| " + " | ".join(cells) + " |")
     if refs:
