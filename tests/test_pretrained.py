@@ -288,3 +288,21 @@ def test_the_fixed_length_glow_samples_its_window_and_warns_at_other_lengths(tmp
     assert "fixed-length" not in capsys.readouterr().err
     assert cli.main([*args, "--seconds", "4.2"]) == 0
     assert "outside what it learnt" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name, multiple", [("vae_lstm-bandai", 4), ("glow-bandai", 4)])
+def test_sample_at_a_length_the_model_cannot_draw_names_the_seconds_that_work(
+    name, multiple, tmp_path, capsys
+):
+    """2.1 s is 42 frames, which neither the VAE-LSTM (pooling by 2 twice) nor the two-level
+    Glow can draw: the command says so in frames and seconds and offers the nearest lengths
+    that work, instead of a model error that asks for another training window."""
+    assert pretrained.load(name).frame_multiple == multiple
+    args = ["sample", f"pretrained:{name}", "--seconds", "2.1", "--no-gif", "--out", str(tmp_path)]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err
+    assert "42 frames" in err and "--seconds 2 or 2.2" in err, err
+    assert "data.window" not in err and "outside what it learnt" not in err, err
+    assert not list(tmp_path.glob("*.npz"))
+    assert cli.main([*args[:3], "2.2", *args[4:]]) == 0, capsys.readouterr().err
+    assert pretrained.load("moglow-bandai").frame_multiple == 1

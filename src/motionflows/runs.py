@@ -118,6 +118,33 @@ def warn_if_not_window(module, config, frames: int, where: str) -> None:
         )
 
 
+def frame_multiple(model) -> int:
+    """The number of frames every length a model draws must be a multiple of: 2**L for the
+    L-level Glow (``Glow.frame_multiple``), 4 for the VAE-LSTM, 1 (any length) otherwise."""
+    return int(getattr(model, "frame_multiple", 1))
+
+
+def check_frames(model, name: str, frames: int, fps: float, fix: str) -> None:
+    """Refuse (:class:`RunError`) a length of ``frames`` that ``model`` cannot draw, naming
+    the nearest lengths that work in frames and seconds. ``fix`` is how the caller sets the
+    length: ``"--seconds"`` (the CLI: the message offers those seconds) or a phrase such as
+    ``"a control of"`` (the message offers those frame counts)."""
+    m = frame_multiple(model)
+    frames = int(frames)
+    if frames >= m and frames % m == 0:
+        return
+    lower = max(m, frames // m * m)
+    options = [lower] if lower > frames else [lower, lower + m]
+    if fix == "--seconds":
+        offer = "--seconds " + " or ".join(f"{n / fps:g}" for n in options)
+    else:
+        offer = f"{fix} " + " or ".join(f"{n}" for n in options) + " frames"
+    raise RunError(
+        f"{name} draws lengths that are a multiple of {m} frames ({m / fps:g} s at {fps:g} "
+        f"fps); {frames} frames ({frames / fps:g} s) is not one: use {offer}"
+    )
+
+
 def new_run_name(preset: str | None) -> str:
     return f"{preset or 'custom'}-{time.strftime('%Y%m%d-%H%M%S')}"
 

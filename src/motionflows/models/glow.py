@@ -265,8 +265,14 @@ class Glow(nnx.Module):
             start += n
         return parts
 
+    @property
+    def frame_multiple(self) -> int:
+        """Every window length T is a multiple of this: 2**levels (each level squeezes time
+        by 2)."""
+        return 2**self.levels
+
     def _check_length(self, length: int) -> None:
-        multiple = 2**self.levels
+        multiple = self.frame_multiple
         if length < multiple or length % multiple:
             raise ValueError(
                 f"Glow with {self.levels} levels needs windows whose length T is a positive "

@@ -142,6 +142,9 @@ class VAELSTM(nnx.Module):
         only the earlier latents, p(z_t | z_{<t}) (False).
     """
 
+    frame_multiple = 4
+    """Every window length T is a multiple of this: the encoders pool time twice by 2."""
+
     def __init__(
         self,
         *,
@@ -235,7 +238,7 @@ class VAELSTM(nnx.Module):
                 raise ValueError(
                     f"control must have shape (B, T, {CONTROL_DIM}), got {tuple(c.shape)}"
                 )
-            if c.shape[1] % 4 != 0 or c.shape[1] == 0:
+            if c.shape[1] % VAELSTM.frame_multiple != 0 or c.shape[1] == 0:
                 raise ValueError(
                     f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
                     f"multiple of 4; got T = {c.shape[1]}. Use data.window divisible by 4 "
@@ -244,7 +247,7 @@ class VAELSTM(nnx.Module):
         if x is not None:
             if x.ndim != 3 or x.shape[-1] != POSE_DIM:
                 raise ValueError(f"pose must have shape (B, T, {POSE_DIM}), got {tuple(x.shape)}")
-            if x.shape[1] % 4 != 0 or x.shape[1] == 0:
+            if x.shape[1] % VAELSTM.frame_multiple != 0 or x.shape[1] == 0:
                 raise ValueError(
                     f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
                     f"multiple of 4; got T = {x.shape[1]}"

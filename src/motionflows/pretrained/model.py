@@ -11,7 +11,13 @@ import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.validation import check_input, check_temperature
-from motionflows.runs import experiment_sample, fixed_length, warn_if_not_window
+from motionflows.runs import (
+    check_frames,
+    experiment_sample,
+    fixed_length,
+    frame_multiple,
+    warn_if_not_window,
+)
 
 INFO_FILE = "pretrained.json"
 """Optional file of an exported run: ``{"temperature": T, "scope": ..., "notes": ...}``."""
@@ -34,7 +40,9 @@ class PretrainedModel:
       temperature the model was validated at (``pretrained.json``; 1.0 when absent);
       scope: the likelihood scope :meth:`log_prob` returns; fps and window from the config;
       fixed_length: True for a model that samples only its training window (the
-      experiment's ``FIXED_LENGTH``: the Glow; the VAE-LSTM samples any T divisible by 4).
+      experiment's ``FIXED_LENGTH``: the Glow; the VAE-LSTM samples any T divisible by 4);
+      frame_multiple: every T the model draws is a multiple of this (Glow 2**levels,
+      VAE-LSTM 4, MoGlow 1).
     """
 
     def __init__(self, module, config, model, standardizer, *, info: dict | None = None):
@@ -48,6 +56,7 @@ class PretrainedModel:
         self.window = int(config.data.window)
         self.name = getattr(module, "NAME", "model")
         self.fixed_length = fixed_length(module)
+        self.frame_multiple = frame_multiple(model)
         self._sample = jax.jit(
             lambda model, key, control, temperature: experiment_sample(
                 module, model, key, control, temperature=temperature
@@ -74,6 +83,7 @@ class PretrainedModel:
         seed gives the same motion.
         """
         control = _array(control, CONTROL_DIM, "control", "PretrainedModel.sample")
+        check_frames(self.model, self.name, control.shape[1], self.fps, "a control of")
         warn_if_not_window(self.module, self.config, control.shape[1], "PretrainedModel.sample")
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, "PretrainedModel.sample"))
