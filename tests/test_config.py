@@ -117,6 +117,22 @@ def test_overrides_parse_tuple_fields_with_element_types():
         apply_overrides(C(), ["pair=1"])  # wrong arity
 
 
+def test_an_unreadable_value_names_its_type_for_people():
+    """``K=abc`` says what K takes, not Python's repr of the type ("<class 'int'>")."""
+
+    @dataclasses.dataclass
+    class C:
+        K: int = 4
+        lr: float = 1e-3
+        residual: bool = False
+
+    for override, kind in (("K=abc", "a whole number"), ("lr=fast", "a number"),
+                           ("residual=maybe", "true or false")):  # fmt: skip
+        with pytest.raises(ValueError, match="cannot read") as err:
+            apply_overrides(C(), [override])
+        assert kind in str(err.value) and "<class" not in str(err.value), str(err.value)
+
+
 def test_overrides_are_checked_together_not_one_at_a_time():
     """A preset's pair of fields that only make sense together (the Glow's
     ``residual_decay`` needs ``residual``) can be switched off in either order: the

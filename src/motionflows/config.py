@@ -399,7 +399,23 @@ def _parse(text: str, kind: Any, key: str) -> Any:
         value = json.loads(text)
         return tuple(value) if isinstance(value, list) else value
     except ValueError as err:
-        raise ValueError(f"--set {key}={text}: cannot read {text!r} as {kind}") from err
+        raise ValueError(f"--set {key}={text}: cannot read {text!r} as {_kind_name(kind)}") from err
+
+
+_KIND_NAMES = {
+    int: "a whole number (int)",
+    float: "a number (float)",
+    bool: "true or false (bool)",
+    str: "text (str)",
+}
+
+
+def _kind_name(kind) -> str:
+    """A config field's type as a person reads it: ``int`` -> "a whole number (int)",
+    ``tuple[int, ...]`` -> "tuple[int, ...]" (not "<class 'int'>")."""
+    if kind in _KIND_NAMES:
+        return _KIND_NAMES[kind]
+    return kind.__name__ if isinstance(kind, type) else str(kind)
 
 
 def _matching_fields(paths: dict[str, tuple[str, type]], key: str) -> list[str]:
