@@ -306,3 +306,20 @@ def test_sample_at_a_length_the_model_cannot_draw_names_the_seconds_that_work(
     assert not list(tmp_path.glob("*.npz"))
     assert cli.main([*args[:3], "2.2", *args[4:]]) == 0, capsys.readouterr().err
     assert pretrained.load("moglow-bandai").frame_multiple == 1
+
+
+def test_sample_from_a_control_file_keeps_its_length_unless_seconds_asks(tmp_path, capsys):
+    """A (T, 3) .npy control is drawn at its own T frames, as a .bvh take is (it was padded
+    to the presets' 8 s, repeating its last frame for 6 s the user never asked for)."""
+    control = np.zeros((40, 3), np.float32)
+    control[:, 0] = 0.05  # a walk forward, 1 m/s
+    np.save(tmp_path / "mine.npy", control)
+    args = ["sample", "pretrained:moglow-bandai", "--control", str(tmp_path / "mine.npy"),
+            "--no-gif"]  # fmt: skip
+    assert cli.main([*args, "--out", str(tmp_path / "own")]) == 0, capsys.readouterr().err
+    (npz,) = (tmp_path / "own").glob("*.npz")
+    assert np.load(npz)["pose"].shape == (1, 40, 63)
+    np.testing.assert_array_equal(np.load(npz)["control"], control)
+    assert cli.main([*args, "--seconds", "1", "--out", str(tmp_path / "cut")]) == 0
+    (npz,) = (tmp_path / "cut").glob("*.npz")
+    assert np.load(npz)["pose"].shape == (1, 20, 63)

@@ -110,7 +110,8 @@ def _sample_controls(
     """(name, control (T, 3) data units, ground-truth pose (T, 63) metres or None) for
     ``--control``: a preset or .npy (no ground truth), a .bvh take or a folder of takes
     (read with the run's root smoothing ``root_sigma_s``). Without ``--seconds`` a preset
-    lasts 8 s and a take its own length, or ``window_s`` for a fixed-length model."""
+    lasts 8 s and a take or .npy control its own length, or ``window_s`` for a
+    fixed-length model."""
     from motionflows.data.controls import load_control
 
     text = str(args.control)
@@ -130,7 +131,9 @@ def _sample_controls(
                 pose = np.concatenate([pose, np.repeat(pose[-1:], pad, 0)])
             out.append((clip.name, control, pose))
         return out
-    seconds = args.seconds if args.seconds is not None else (window_s or 8.0)
+    seconds = args.seconds if args.seconds is not None else window_s
+    if seconds is None and path.suffix.lower() != ".npy":
+        seconds = 8.0  # a preset has no length of its own
     return [(path.stem, load_control(text, seconds, fps), None)]
 
 
@@ -427,7 +430,8 @@ def _add_sample(sub) -> None:
         "--seconds",
         type=float,
         default=None,
-        help="length (default: 8 s, or the take's own; a fixed-length model's window)",
+        help="length (default: a preset 8 s, a take or .npy control its own; a fixed-length "
+        "model's window)",
     )
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of --control BVH")
     p.add_argument("--num", type=int, default=1, help="number of samples")
