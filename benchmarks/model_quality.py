@@ -51,14 +51,14 @@ def score(
     sample_windows: int,
     split: str = "test",
     checkpoint: str = "latest",
+    truth: tuple[dict, dict] | None = None,
 ):
     """``(rows, nll, gt, refs, step)``: rows of motion metrics (per temperature) and the
     likelihood of a checkpoint, on the windows and controls of ``split``; the ground truth's
-    metrics; the bench's two reference rows of real training motion scored alike
-    (:func:`motionflows.bench.data_references`: the training split of ``dataset``, with
-    the run's own augmentation); the training step of the checkpoint scored (a run's best
-    checkpoint can be older than its last step). ``dataset=None`` loads the run's own
-    data."""
+    metrics and the bench's two reference rows (:func:`truth_and_references`, or ``truth``
+    when given: they depend on the data only, so a run scored at several steps computes them
+    once); the training step of the checkpoint scored (a run's best checkpoint can be older
+    than its last step). ``dataset=None`` loads the run's own data."""
     import jax
 
     exp, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
@@ -69,10 +69,8 @@ def score(
         exp, model, config, dataset, split, limit=windows, key=key, num_bootstrap=200
     )
     part = dataset.split(split)
-    idx = pick(part, sample_windows, seed=2)
+    idx, gt_m, control_m = _scored_windows(part, sample_windows)
     _, ctrl = standardized(dataset.standardizer, part, idx)
-    gt_m = np.asarray(part.pose, np.float32)[idx]
-    control_m = np.asarray(part.control, np.float32)[idx]
     fps = float(config.data.fps)
     st = dataset.standardizer
     rows = []
@@ -92,10 +90,28 @@ def score(
         rows.append({"temperature": temp, **metrics})
     nll = {s: r["test"]["nats_per_frame_metres"] if "test" in r else r["nats_per_frame_metres"]
            for s, r in lik.items()}  # fmt: skip
+    gt, refs = truth or truth_and_references(dataset, split, sample_windows, fps)
+    return rows, nll, gt, refs, int(saved["meta"]["step"])
+
+
+def _scored_windows(part, sample_windows: int):
+    """``(idx, pose (N, T, 63) m, control (N, T, 3))`` of the windows whose controls are
+    sampled (the same ``pick`` for every checkpoint and for the ground truth)."""
+    idx = pick(part, sample_windows, seed=2)
+    return idx, np.asarray(part.pose, np.float32)[idx], np.asarray(part.control, np.float32)[idx]
+
+
+def truth_and_references(dataset, split: str, sample_windows: int, fps: float):
+    """``(gt, refs)``: the motion metrics of the ground truth on the ``sample_windows``
+    windows of ``split`` that :func:`score` samples the controls of (its diversity the
+    split's natural diversity), and the bench's two reference rows of real training motion
+    scored alike (:func:`motionflows.bench.data_references`: the training split of
+    ``dataset``, with the run's own augmentation)."""
+    part = dataset.split(split)
+    _, gt_m, control_m = _scored_windows(part, sample_windows)
     gt = bench.motion_metrics(gt_m, control_m, gt_m, None, fps)
     gt["diversity"] = bench.natural_diversity_of(part)
-    refs = bench.data_references(dataset.train, gt_m, control_m, fps)
-    return rows, nll, gt, refs, int(saved["meta"]["step"])
+    return gt, bench.data_references(dataset.train, gt_m, control_m, fps)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -153,6 +169,7 @@ def main(argv=None) -> int:
         write_report(out, results, gt, " ".join(sys.argv), refs)
         return 0
     dataset = config.data.load()
+    truth = truth_and_references(dataset, args.on, args.sample_windows, float(config.data.fps))
     for steps in [int(s) for s in args.steps.split(",")]:
         t0 = time.perf_counter()
         cfg = dataclasses.replace(config, train=dataclasses.replace(config.train, steps=steps))
@@ -168,6 +185,7 @@ def main(argv=None) -> int:
             seed=args.seed,
             sample_windows=args.sample_windows,
             split=args.on,
+            truth=truth,
         )
         for row in rows:
             rec = {"steps": steps, "train_s": train_s, "nll": nll, **row}
