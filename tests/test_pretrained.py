@@ -297,7 +297,10 @@ def test_sample_at_a_length_the_model_cannot_draw_names_the_seconds_that_work(
     """2.1 s is 42 frames, which neither the VAE-LSTM (pooling by 2 twice) nor the two-level
     Glow can draw: the command says so in frames and seconds and offers the nearest lengths
     that work, instead of a model error that asks for another training window."""
-    assert pretrained.load(name).frame_multiple == multiple
+    model = pretrained.load(name)
+    assert model.frame_multiple == multiple
+    with pytest.raises(ValueError, match="use a control of 40 or 44 frames"):
+        model.sample(np.zeros((1, 42, 3), np.float32))  # the API says it in frames
     args = ["sample", f"pretrained:{name}", "--seconds", "2.1", "--no-gif", "--out", str(tmp_path)]
     assert cli.main(args) == 2
     err = capsys.readouterr().err
