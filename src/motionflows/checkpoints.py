@@ -21,7 +21,6 @@ them (by position against the template, :func:`unflatten`).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import re
 import sys
@@ -31,6 +30,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from motionflows.checkpoint_noise import drop_echoes_of, quiet_orbax
 
 logging.getLogger("absl").setLevel(logging.WARNING)
 
@@ -208,20 +209,6 @@ def _os_error(err: BaseException) -> OSError | None:
     return None
 
 
-@contextlib.contextmanager
-def _quiet_orbax():
-    """Keep orbax/absl from logging its own tracebacks while we turn errors into one line."""
-    loggers = [logging.getLogger(n) for n in ("absl", "orbax")]
-    levels = [lg.level for lg in loggers]
-    for lg in loggers:
-        lg.setLevel(logging.CRITICAL)
-    try:
-        yield
-    finally:
-        for lg, level in zip(loggers, levels, strict=True):
-            lg.setLevel(level)
-
-
 def all_finite(tree: Any) -> bool:
     """Whether every floating-point array of ``tree`` (e.g. :func:`named_leaves` output) is
     finite."""
@@ -247,18 +234,18 @@ class Checkpointer:
             )
             return ocp.CheckpointManager((self.directory / sub).absolute(), options=opts)
 
-        with _quiet_orbax():  # a damaged step is reported by restore(), in one line
+        with quiet_orbax():  # a damaged step is reported by restore(), in one line
             self.managers = {
                 "latest": manager("latest", max(1, keep)),
                 "best": manager("best", 1),
             }
 
     def steps(self, which: str = "latest") -> list[int]:
-        with _quiet_orbax():
+        with quiet_orbax():
             return list(self.managers[which].all_steps())
 
     def latest_step(self, which: str = "latest") -> int | None:
-        with _quiet_orbax():
+        with quiet_orbax():
             return self.managers[which].latest_step()
 
     def save(self, step: int, state: dict[str, Any], meta: dict, *, which: str = "latest"):
@@ -275,7 +262,7 @@ class Checkpointer:
         stored = {name: nest(group) for name, group in named.items()}
         mgr = self.managers[which]
         try:
-            with _quiet_orbax():
+            with quiet_orbax():
                 if step in mgr.all_steps():
                     mgr.delete(step)
                 mgr.save(
@@ -312,25 +299,26 @@ class Checkpointer:
         ocp = self._ocp
         mgr = self.managers[which]
         # an explicit step must load; otherwise the newest complete checkpoint is used
-        with _quiet_orbax():
+        with quiet_orbax():
             every = mgr.all_steps()
         candidates = sorted(every, reverse=True) if step is None else [step]
         if not candidates:
             raise FileNotFoundError(f"no {which} checkpoint in {self.directory}")
         args = ocp.args.Composite(state=ocp.args.StandardRestore(), meta=ocp.args.JsonRestore())
         got, damaged = None, []
-        for candidate in candidates:
-            try:
-                with _quiet_orbax():
+        with quiet_orbax():  # also while a failed restore unwinds (checkpoint_noise)
+            for candidate in candidates:
+                try:
                     got = mgr.restore(candidate, args=args)
-                break
-            except Exception as err:  # a truncated or damaged step directory
-                if step is not None:
-                    raise CheckpointReadError(
-                        f"checkpoint step {candidate} in {self.directory / which} cannot be "
-                        f"read ({type(err).__name__}); it is damaged or incomplete"
-                    ) from None
-                damaged.append(candidate)
+                    break
+                except Exception as err:  # a truncated or damaged step directory
+                    drop_echoes_of(mgr.directory / str(candidate))
+                    if step is not None:
+                        raise CheckpointReadError(
+                            f"checkpoint step {candidate} in {self.directory / which} cannot "
+                            f"be read ({type(err).__name__}); it is damaged or incomplete"
+                        ) from None
+                    damaged.append(candidate)
         if got is None:
             raise CheckpointReadError(
                 f"no readable {which} checkpoint in {self.directory}: steps {damaged} are "
