@@ -326,3 +326,28 @@ def test_sample_from_a_control_file_keeps_its_length_unless_seconds_asks(tmp_pat
     assert cli.main([*args, "--seconds", "1", "--out", str(tmp_path / "cut")]) == 0
     (npz,) = (tmp_path / "cut").glob("*.npz")
     assert np.load(npz)["pose"].shape == (1, 20, 63)
+
+
+def test_a_control_far_outside_the_training_data_warns_and_names_the_units(tmp_path, capsys):
+    """A walk given in m/s instead of m/frame (1.1 m/frame = 22 m/s, 37 training standard
+    deviations out) used to be drawn without a word: the model extrapolates, the output looks
+    like motion and is nonsense. It warns now, naming the channel and the per-frame units; the
+    presets at their 8 s (the sidesteps reach 4.5 sd sideways) pass silently."""
+    import warnings
+
+    from motionflows.data.controls import PRESETS, load_control
+
+    model = pretrained.load("moglow-bandai")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for name in PRESETS:
+            model.sample(load_control(name, 8.0)[None])
+    per_second = load_control("walk", 2.0) * model.fps
+    with pytest.warns(UserWarning, match=r"forward .*m/frame.*divide m/s and rad/s by the fps"):
+        model.sample(per_second[None])
+    np.save(tmp_path / "per_second.npy", per_second)
+    args = ["sample", "pretrained:moglow-bandai", "--control", str(tmp_path / "per_second.npy"),
+            "--no-gif", "--out", str(tmp_path)]  # fmt: skip
+    assert cli.main(args) == 0
+    err = capsys.readouterr().err
+    assert "standard deviations" in err and "Traceback" not in err, err

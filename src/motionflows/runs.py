@@ -145,6 +145,39 @@ def check_frames(model, name: str, frames: int, fps: float, fix: str) -> None:
     )
 
 
+FAR_CONTROL_SD = 15.0
+"""How many training standard deviations from the training mean a control channel may go
+before sampling warns. The Bandai training takes reach 6 (forward), 9 (sideways) and 11
+(turn); a control written per second instead of per frame lands 20 fps times further out."""
+
+
+def warn_if_control_unseen(standardizer, control, name: str, fps: float, where: str) -> None:
+    """Warn (``UserWarning``) when a control (..., T, 3) in m/frame, m/frame, rad/frame goes
+    more than :data:`FAR_CONTROL_SD` training standard deviations from the training mean in
+    any frame: the model extrapolates there without a sign of it in its output, and the usual
+    cause is a control in m/s or rad/s. Names the worst channel and frame."""
+    import numpy as np
+
+    from motionflows.data.names import CONTROL_NAMES, CONTROL_UNITS
+
+    control = np.asarray(control, np.float64)
+    z = np.abs(np.asarray(standardizer.normalize_control(control), np.float64))
+    if not z.size or z.max() <= FAR_CONTROL_SD:
+        return
+    worst = np.unravel_index(int(np.argmax(z)), z.shape)
+    value, frame, channel = float(control[worst]), int(worst[-2]), int(worst[-1])
+    label, unit = CONTROL_NAMES[channel], CONTROL_UNITS[channel].removesuffix("/frame")
+    mean, sd = float(standardizer.control_mean[channel]), float(standardizer.control_std[channel])
+    warnings.warn(
+        f"{where}: control frame {frame} has {label} {value:.3g} {unit}/frame ({value * fps:.3g} "
+        f"{unit}/s at {fps:g} fps), {z.max():.0f} standard deviations from what {name} was "
+        f"trained on ({mean:.3f} +- {sd:.3f} {unit}/frame); the model extrapolates there and its "
+        f"motion means little. Controls are per frame: divide m/s and rad/s by the fps",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 def new_run_name(preset: str | None) -> str:
     return f"{preset or 'custom'}-{time.strftime('%Y%m%d-%H%M%S')}"
 

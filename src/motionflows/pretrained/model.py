@@ -16,6 +16,7 @@ from motionflows.runs import (
     experiment_sample,
     fixed_length,
     frame_multiple,
+    warn_if_control_unseen,
     warn_if_not_window,
 )
 
@@ -85,6 +86,8 @@ class PretrainedModel:
         control = _array(control, CONTROL_DIM, "control", "PretrainedModel.sample")
         check_frames(self.model, self.name, control.shape[1], self.fps, "a control of")
         warn_if_not_window(self.module, self.config, control.shape[1], "PretrainedModel.sample")
+        where = "PretrainedModel.sample"
+        warn_if_control_unseen(self.standardizer, control, self.name, self.fps, where)
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, "PretrainedModel.sample"))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
