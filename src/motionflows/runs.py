@@ -147,8 +147,9 @@ def check_frames(model, name: str, frames: int, fps: float, fix: str) -> None:
 
 FAR_CONTROL_SD = 15.0
 """How many training standard deviations from the training mean a control channel may go
-before sampling warns. The Bandai training takes reach 6 (forward), 9 (sideways) and 11
-(turn); a control written per second instead of per frame lands 20 fps times further out."""
+before sampling warns. The Bandai takes reach 6 (forward), 9 (sideways) and 11 (turn) with
+the shipped MoGlow's standardiser; a control written per second instead of per frame lands
+fps times (20x) further from zero."""
 
 
 def warn_if_control_unseen(standardizer, control, name: str, fps: float, where: str) -> None:
