@@ -183,7 +183,7 @@ def cmd_sample(args) -> int:
     for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s, window_s):
         runs.check_frames(model, module.NAME, len(control), fps, "--seconds")
         runs.warn_if_not_window(module, config, len(control), "motionflows sample")
-        runs.warn_if_control_unseen(std, control, module.NAME, fps, "motionflows sample")
+        runs.warn_if_control_unseen(module, config, std, control, "motionflows sample")
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )

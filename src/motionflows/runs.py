@@ -152,15 +152,17 @@ the shipped MoGlow's standardiser; a control written per second instead of per f
 fps times (20x) further from zero."""
 
 
-def warn_if_control_unseen(standardizer, control, name: str, fps: float, where: str) -> None:
+def warn_if_control_unseen(module, config, standardizer, control, where: str) -> None:
     """Warn (``UserWarning``) when a control (..., T, 3) in m/frame, m/frame, rad/frame goes
-    more than :data:`FAR_CONTROL_SD` training standard deviations from the training mean in
-    any frame: the model extrapolates there without a sign of it in its output, and the usual
-    cause is a control in m/s or rad/s. Names the worst channel and frame."""
+    more than :data:`FAR_CONTROL_SD` training standard deviations (``standardizer``, the
+    run's) from the training mean in any frame: the model extrapolates there without a sign
+    of it in its output, and the usual cause is a control in m/s or rad/s. Names the worst
+    channel and frame."""
     import numpy as np
 
     from motionflows.data.names import CONTROL_NAMES, CONTROL_UNITS
 
+    fps = float(config.data.fps)
     control = np.asarray(control, np.float64)
     z = np.abs(np.asarray(standardizer.normalize_control(control), np.float64))
     if not z.size or z.max() <= FAR_CONTROL_SD:
@@ -171,7 +173,7 @@ def warn_if_control_unseen(standardizer, control, name: str, fps: float, where: 
     mean, sd = float(standardizer.control_mean[channel]), float(standardizer.control_std[channel])
     warnings.warn(
         f"{where}: control frame {frame} has {label} {value:.3g} {unit}/frame ({value * fps:.3g} "
-        f"{unit}/s at {fps:g} fps), {z.max():.0f} standard deviations from what {name} was "
+        f"{unit}/s at {fps:g} fps), {z.max():.0f} standard deviations from what {module.NAME} was "
         f"trained on ({mean:.3f} +- {sd:.3f} {unit}/frame); the model extrapolates there and its "
         f"motion means little. Controls are per frame: divide m/s and rad/s by the fps",
         UserWarning,

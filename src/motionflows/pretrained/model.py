@@ -83,13 +83,13 @@ class PretrainedModel:
         meant for T = :attr:`window` and warns (``UserWarning``) at other lengths. The same
         seed gives the same motion.
         """
-        control = _array(control, CONTROL_DIM, "control", "PretrainedModel.sample")
-        check_frames(self.model, self.name, control.shape[1], self.fps, "a control of")
-        warn_if_not_window(self.module, self.config, control.shape[1], "PretrainedModel.sample")
         where = "PretrainedModel.sample"
-        warn_if_control_unseen(self.standardizer, control, self.name, self.fps, where)
+        control = _array(control, CONTROL_DIM, "control", where)
+        check_frames(self.model, self.name, control.shape[1], self.fps, "a control of")
+        warn_if_not_window(self.module, self.config, control.shape[1], where)
+        warn_if_control_unseen(self.module, self.config, self.standardizer, control, where)
         temp = self.temperature if temperature is None else temperature
-        temp = float(check_temperature(temp, "PretrainedModel.sample"))
+        temp = float(check_temperature(temp, where))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
         x = self._sample(self.model, jax.random.key(int(seed)), c, np.float32(temp))
         return np.asarray(self.standardizer.denormalize_pose(np.asarray(x)), np.float32)
