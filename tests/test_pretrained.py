@@ -343,8 +343,15 @@ def test_a_control_far_outside_the_training_data_warns_and_names_the_units(tmp_p
         for name in PRESETS:
             model.sample(load_control(name, 8.0)[None])
     per_second = load_control("walk", 2.0) * model.fps
-    with pytest.warns(UserWarning, match=r"forward .*m/frame.*divide m/s and rad/s by the fps"):
-        model.sample(per_second[None])
+    with pytest.warns(
+        UserWarning, match=r"forward .*m/frame.*divide m/s and rad/s by the fps"
+    ) as seen:
+        pose = model.sample(per_second[None])
+    assert seen[0].filename == __file__  # the warning points at the caller's line
+    # scoring poses under such a control is as meaningless as drawing them
+    with pytest.warns(UserWarning, match=r"PretrainedModel.log_prob: control .*forward") as seen:
+        model.log_prob(pose, per_second[None])
+    assert seen[0].filename == __file__
     np.save(tmp_path / "per_second.npy", per_second)
     args = ["sample", "pretrained:moglow-bandai", "--control", str(tmp_path / "per_second.npy"),
             "--no-gif", "--out", str(tmp_path)]  # fmt: skip

@@ -181,9 +181,9 @@ def cmd_sample(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     window_s = config.data.window / fps if runs.fixed_length(module) else None
     for name, control, truth in _sample_controls(args, fps, config.data.root_sigma_s, window_s):
-        runs.check_frames(model, module.NAME, len(control), fps, "--seconds")
-        runs.warn_if_not_window(module, config, len(control), "motionflows sample")
-        runs.warn_if_control_unseen(module, config, std, control, "motionflows sample")
+        runs.check_sample_control(
+            module, config, model, std, control, "motionflows sample", "--seconds"
+        )
         pose = run.draw_samples(
             module, model, std, control, num=args.num, temperature=temperature, seed=args.seed
         )

@@ -101,10 +101,12 @@ def fixed_length(module) -> bool:
     return bool(getattr(module, "FIXED_LENGTH", False))
 
 
-def warn_if_not_window(module, config, frames: int, where: str) -> None:
+def warn_if_not_window(module, config, frames: int, where: str, *, stacklevel: int = 3) -> None:
     """Warn (``UserWarning``) when a fixed-length experiment (``FIXED_LENGTH = True``: the
     Glow) is asked for ``frames`` other than its training window: its convolutions run on
-    any multiple of 2**L frames, but a length it never saw is outside what it learnt."""
+    any multiple of 2**L frames, but a length it never saw is outside what it learnt.
+    ``stacklevel`` as :func:`warnings.warn`'s, counted from this function (3: the line that
+    called its caller)."""
     window = int(config.data.window)
     if fixed_length(module) and int(frames) != window:
         fps = float(config.data.fps)
@@ -114,7 +116,7 @@ def warn_if_not_window(module, config, frames: int, where: str) -> None:
             f"move well. Ask for {window} frames, or use a causal model (moglow) for other "
             "lengths",
             UserWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
 
 
@@ -152,12 +154,14 @@ the shipped MoGlow's standardiser; a control written per second instead of per f
 fps times (20x) further from zero."""
 
 
-def warn_if_control_unseen(module, config, standardizer, control, where: str) -> None:
+def warn_if_control_unseen(
+    module, config, standardizer, control, where: str, *, stacklevel: int = 3
+) -> None:
     """Warn (``UserWarning``) when a control (..., T, 3) in m/frame, m/frame, rad/frame goes
     more than :data:`FAR_CONTROL_SD` training standard deviations (``standardizer``, the
     run's) from the training mean in any frame: the model extrapolates there without a sign
     of it in its output, and the usual cause is a control in m/s or rad/s. Names the worst
-    channel and frame."""
+    channel and frame; ``stacklevel`` as :func:`warn_if_not_window`'s."""
     import numpy as np
 
     from motionflows.data.names import CONTROL_NAMES, CONTROL_UNITS
@@ -177,8 +181,22 @@ def warn_if_control_unseen(module, config, standardizer, control, where: str) ->
         f"trained on ({mean:.3f} +- {sd:.3f} {unit}/frame); the model extrapolates there and its "
         f"motion means little. Controls are per frame: divide m/s and rad/s by the fps",
         UserWarning,
-        stacklevel=3,
+        stacklevel=stacklevel,
     )
+
+
+def check_sample_control(module, config, model, standardizer, control, where: str, fix: str):
+    """The checks every sampler runs on a control array (..., T, 3) in m/frame, m/frame,
+    rad/frame before it draws: a length ``model`` cannot draw is refused
+    (:func:`check_frames`, whose ``fix`` this is); a fixed-length model's length other than
+    its window and a control far outside the training data are warned about
+    (:func:`warn_if_not_window`, :func:`warn_if_control_unseen`), the warnings pointing at
+    the line that called the sampler. ``where`` names the sampler in the warnings."""
+    frames = int(control.shape[-2])
+    name = getattr(module, "NAME", "model")
+    check_frames(model, name, frames, float(config.data.fps), fix)
+    warn_if_not_window(module, config, frames, where, stacklevel=4)
+    warn_if_control_unseen(module, config, standardizer, control, where, stacklevel=4)
 
 
 def new_run_name(preset: str | None) -> str:

@@ -12,12 +12,11 @@ import numpy as np
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.runs import (
-    check_frames,
+    check_sample_control,
     experiment_sample,
     fixed_length,
     frame_multiple,
     warn_if_control_unseen,
-    warn_if_not_window,
 )
 
 INFO_FILE = "pretrained.json"
@@ -85,9 +84,9 @@ class PretrainedModel:
         """
         where = "PretrainedModel.sample"
         control = _array(control, CONTROL_DIM, "control", where)
-        check_frames(self.model, self.name, control.shape[1], self.fps, "a control of")
-        warn_if_not_window(self.module, self.config, control.shape[1], where)
-        warn_if_control_unseen(self.module, self.config, self.standardizer, control, where)
+        check_sample_control(
+            self.module, self.config, self.model, self.standardizer, control, where, "a control of"
+        )
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, where))
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
@@ -98,11 +97,14 @@ class PretrainedModel:
         """Log-likelihood (B,) in nats per frame in metres of poses (B, T, 63) metres given
         controls (B, T, 3), in the scope :attr:`scope` (``"window"``: all T frames; for the
         VAE-LSTM ``"elbo"``, a lower bound). The standardiser's Jacobian is included:
-        ``(log p_std + F log|d std / d x|) / F`` over the F scored frames."""
-        pose = _array(pose, POSE_DIM, "pose", "PretrainedModel.log_prob")
-        control = _array(control, CONTROL_DIM, "control", "PretrainedModel.log_prob")
+        ``(log p_std + F log|d std / d x|) / F`` over the F scored frames. Warns
+        (``UserWarning``) on a control far outside the training data, as :meth:`sample`."""
+        where = "PretrainedModel.log_prob"
+        pose = _array(pose, POSE_DIM, "pose", where)
+        control = _array(control, CONTROL_DIM, "control", where)
         if pose.shape[:2] != control.shape[:2]:
             raise ValueError(f"pose {pose.shape} and control {control.shape} must share (B, T)")
+        warn_if_control_unseen(self.module, self.config, self.standardizer, control, where)
         batch = {
             "pose": np.asarray(self.standardizer.normalize_pose(pose), np.float32),
             "control": np.asarray(self.standardizer.normalize_control(control), np.float32),
