@@ -288,6 +288,14 @@ def test_load_control_file(tmp_path):
     with pytest.raises(ValueError, match="non-finite"):
         load_control(tmp_path / "nan.npy")
     assert load_control("run", 2.0).shape == (40, 3)
+    # a complex control used to lose its imaginary part without a word
+    np.save(tmp_path / "complex.npy", np.ones((10, 3)) * (1 + 1j))
+    with pytest.raises(ValueError, match="real numbers, got dtype complex128"):
+        load_control(tmp_path / "complex.npy")
+    # a file that is not a .npy array says how to write one, not numpy's reader's words
+    (tmp_path / "text.npy").write_text("1 2 3\n")
+    with pytest.raises(ValueError, match=r"text.npy as a numeric NumPy array.*numpy.save"):
+        load_control(tmp_path / "text.npy")
 
 
 def test_foot_lock_changes_the_training_takes_only():

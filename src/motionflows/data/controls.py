@@ -100,8 +100,8 @@ def validate_control(control, *, path: str | None = None) -> np.ndarray:
             f"control{where} must have shape (T, {CONTROL_DIM}) = (forward m/frame, sideways "
             f"m/frame, turn rad/frame), got {arr.shape}"
         )
-    if not np.issubdtype(arr.dtype, np.number):
-        raise ValueError(f"control{where} must be numeric, got dtype {arr.dtype}")
+    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
+        raise ValueError(f"control{where} must hold real numbers, got dtype {arr.dtype}")
     if not np.isfinite(arr).all():
         raise ValueError(f"control{where} has non-finite values")
     return arr.astype(np.float32)
@@ -145,7 +145,10 @@ def load_control(
         try:
             arr = np.load(p, allow_pickle=False)
         except Exception as err:
-            raise ValueError(f"cannot read control file {p}: {err}") from None
+            raise ValueError(
+                f"cannot read control file {p} as a numeric NumPy array ({err}); write a (T, 3) "
+                "float array with numpy.save(path, control)"
+            ) from None
     arr = validate_control(arr, path=str(p))
     if seconds is not None:
         n = max(1, int(round(seconds * fps)))
