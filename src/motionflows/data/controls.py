@@ -144,10 +144,11 @@ def load_control(
     else:
         try:
             arr = np.load(p, allow_pickle=False)
-        except Exception as err:
+        except Exception as err:  # numpy's first sentence only: its next offers pickle
             raise ValueError(
-                f"cannot read control file {p} as a numeric NumPy array ({err}); write a (T, 3) "
-                "float array with numpy.save(path, control)"
+                f"cannot read control file {p} as a numeric NumPy array "
+                f"({str(err).split('. ')[0]}); write a (T, 3) float array with "
+                "numpy.save(path, control)"
             ) from None
     arr = validate_control(arr, path=str(p))
     if seconds is not None:
