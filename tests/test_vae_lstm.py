@@ -84,6 +84,10 @@ def test_clear_errors_on_bad_shapes():
     x, c = _data(jax.random.key(0), 2, 16)
     with pytest.raises(ValueError, match="multiple of 4"):
         model.elbo(x[:, :14], c[:, :14], jax.random.key(0))
+    # the model's own message offers lengths, not a config field a model call has not got
+    with pytest.raises(ValueError, match=r"T = 14.*use 12 or 16 frames") as err:
+        model.sample(jax.random.key(0), c[:, :14])
+    assert "data.window" not in str(err.value)
     with pytest.raises(ValueError, match=r"\(B, T, 3\)"):
         model.sample(jax.random.key(0), c[..., :2])
     with pytest.raises(ValueError, match="share"):

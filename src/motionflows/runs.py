@@ -131,12 +131,13 @@ def check_frames(model, name: str, frames: int, fps: float, fix: str) -> None:
     the nearest lengths that work in frames and seconds. ``fix`` is how the caller sets the
     length: ``"--seconds"`` (the CLI: the message offers those seconds) or a phrase such as
     ``"a control of"`` (the message offers those frame counts)."""
+    from motionflows.models.validation import nearest_lengths
+
     m = frame_multiple(model)
     frames = int(frames)
     if frames >= m and frames % m == 0:
         return
-    lower = max(m, frames // m * m)
-    options = [lower] if lower > frames else [lower, lower + m]
+    options = nearest_lengths(frames, m)
     if fix == "--seconds":
         offer = "--seconds " + " or ".join(f"{n / fps:g}" for n in options)
     else:

@@ -67,7 +67,7 @@ from motionflows.bijectors import (
 from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, Transformed
-from motionflows.models.validation import check_input, check_temperature
+from motionflows.models.validation import check_input, check_temperature, nearest_lengths
 from motionflows.nets.conv import ConvNet, TimeConv
 
 Array = jax.Array
@@ -274,10 +274,11 @@ class Glow(nnx.Module):
     def _check_length(self, length: int) -> None:
         multiple = self.frame_multiple
         if length < multiple or length % multiple:
+            use = " or ".join(map(str, nearest_lengths(length, multiple)))
             raise ValueError(
                 f"Glow with {self.levels} levels needs windows whose length T is a positive "
-                f"multiple of 2**{self.levels} = {multiple}, got T = {length}; change the "
-                f"window length (data.window) or the number of levels"
+                f"multiple of 2**{self.levels} = {multiple}, got T = {length}: use {use} "
+                f"frames (a run's window is data.window), or fewer levels"
             )
 
     def _length_from_latent(self, z: Array) -> int:

@@ -52,7 +52,7 @@ from flax import nnx
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal
-from motionflows.models.validation import check_input, check_temperature
+from motionflows.models.validation import check_input, check_temperature, nearest_lengths
 from motionflows.nets.latent_prior import LatentPrior
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
@@ -144,6 +144,16 @@ class VAELSTM(nnx.Module):
 
     frame_multiple = 4
     """Every window length T is a multiple of this: the encoders pool time twice by 2."""
+
+    @staticmethod
+    def _check_length(length: int) -> None:
+        multiple = VAELSTM.frame_multiple
+        if length < multiple or length % multiple:
+            use = " or ".join(map(str, nearest_lengths(length, multiple)))
+            raise ValueError(
+                f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
+                f"multiple of {multiple}; got T = {length}: use {use} frames"
+            )
 
     def __init__(
         self,
@@ -238,20 +248,11 @@ class VAELSTM(nnx.Module):
                 raise ValueError(
                     f"control must have shape (B, T, {CONTROL_DIM}), got {tuple(c.shape)}"
                 )
-            if c.shape[1] % VAELSTM.frame_multiple != 0 or c.shape[1] == 0:
-                raise ValueError(
-                    f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
-                    f"multiple of 4; got T = {c.shape[1]}. Use data.window divisible by 4 "
-                    f"(e.g. {max(4, 4 * (c.shape[1] // 4))})."
-                )
+            VAELSTM._check_length(c.shape[1])
         if x is not None:
             if x.ndim != 3 or x.shape[-1] != POSE_DIM:
                 raise ValueError(f"pose must have shape (B, T, {POSE_DIM}), got {tuple(x.shape)}")
-            if x.shape[1] % VAELSTM.frame_multiple != 0 or x.shape[1] == 0:
-                raise ValueError(
-                    f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
-                    f"multiple of 4; got T = {x.shape[1]}"
-                )
+            VAELSTM._check_length(x.shape[1])
             if c is not None and x.shape[:2] != c.shape[:2]:
                 raise ValueError(
                     f"pose {tuple(x.shape)} and control {tuple(c.shape)} must share (B, T)"

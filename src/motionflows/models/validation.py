@@ -94,6 +94,17 @@ def check_temperature(temperature: Any, where: str) -> Any:
     return temperature
 
 
+def nearest_lengths(frames: int, multiple: int) -> list[int]:
+    """The lengths nearest ``frames`` that are positive multiples of ``multiple``: the one
+    below and the one above, or the smallest alone when ``frames`` is below it.
+
+    >>> nearest_lengths(14, 4), nearest_lengths(2, 4)
+    ([12, 16], [4])
+    """
+    lower = max(multiple, int(frames) // multiple * multiple)
+    return [lower] if lower > frames else [lower, lower + multiple]
+
+
 def check_sample_args(
     control: Any,
     temperature: Any,
