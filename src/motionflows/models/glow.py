@@ -67,7 +67,7 @@ from motionflows.bijectors import (
 from motionflows.data.names import CONTROL_DIM, DEFAULT_WINDOW, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, Transformed
-from motionflows.models.validation import check_input, check_temperature, nearest_lengths
+from motionflows.models.validation import check_input, check_length, check_temperature
 from motionflows.nets.conv import ConvNet, TimeConv
 
 Array = jax.Array
@@ -272,14 +272,13 @@ class Glow(nnx.Module):
         return 2**self.levels
 
     def _check_length(self, length: int) -> None:
-        multiple = self.frame_multiple
-        if length < multiple or length % multiple:
-            use = " or ".join(map(str, nearest_lengths(length, multiple)))
-            raise ValueError(
-                f"Glow with {self.levels} levels needs windows whose length T is a positive "
-                f"multiple of 2**{self.levels} = {multiple}, got T = {length}: use {use} "
-                f"frames (a run's window is data.window), or fewer levels"
-            )
+        check_length(
+            length,
+            self.frame_multiple,
+            f"Glow with {self.levels} levels needs windows whose length T is a positive "
+            f"multiple of 2**{self.levels} = {self.frame_multiple}",
+            " (a run's window is data.window), or fewer levels",
+        )
 
     def _length_from_latent(self, z: Array) -> int:
         if getattr(z, "ndim", 0) < 1 or z.shape[-1] % self.pose_dim:

@@ -52,7 +52,7 @@ from flax import nnx
 from motionflows.data.names import CONTROL_DIM, DEFAULT_FPS, POSE_DIM
 from motionflows.deprecation import renamed
 from motionflows.distributions import Normal
-from motionflows.models.validation import check_input, check_temperature, nearest_lengths
+from motionflows.models.validation import check_input, check_length, check_temperature
 from motionflows.nets.latent_prior import LatentPrior
 from motionflows.nets.vae import ConvDecoder, ConvEncoder, kernel_for_fps
 
@@ -148,12 +148,12 @@ class VAELSTM(nnx.Module):
     @staticmethod
     def _check_length(length: int) -> None:
         multiple = VAELSTM.frame_multiple
-        if length < multiple or length % multiple:
-            use = " or ".join(map(str, nearest_lengths(length, multiple)))
-            raise ValueError(
-                f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
-                f"multiple of {multiple}; got T = {length}: use {use} frames"
-            )
+        check_length(
+            length,
+            multiple,
+            f"VAE-LSTM pools time twice by 2, so the window length must be a positive "
+            f"multiple of {multiple}",
+        )
 
     def __init__(
         self,

@@ -105,6 +105,15 @@ def nearest_lengths(frames: int, multiple: int) -> list[int]:
     return [lower] if lower > frames else [lower, lower + multiple]
 
 
+def check_length(length: int, multiple: int, rule: str, hint: str = "") -> None:
+    """Refuse (``ValueError``) a window length T that is not a positive multiple of
+    ``multiple``, offering the nearest lengths that are. ``rule`` says why the model needs
+    it (the message's start); ``hint`` follows the offered lengths."""
+    if length < multiple or length % multiple:
+        use = " or ".join(map(str, nearest_lengths(length, multiple)))
+        raise ValueError(f"{rule}; got T = {length}: use {use} frames{hint}")
+
+
 def check_sample_args(
     control: Any,
     temperature: Any,
