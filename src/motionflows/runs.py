@@ -194,8 +194,7 @@ def check_sample_control(module, config, model, standardizer, control, where: st
     (:func:`warn_if_not_window`, :func:`warn_if_control_unseen`), the warnings pointing at
     the line that called the sampler. ``where`` names the sampler in the warnings."""
     frames = int(control.shape[-2])
-    name = getattr(module, "NAME", "model")
-    check_frames(model, name, frames, float(config.data.fps), fix)
+    check_frames(model, module.NAME, frames, float(config.data.fps), fix)
     warn_if_not_window(module, config, frames, where, stacklevel=4)
     warn_if_control_unseen(module, config, standardizer, control, where, stacklevel=4)
 
