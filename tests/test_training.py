@@ -10,6 +10,7 @@ import types
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from flax import nnx
 from test_training_fakes import FakeDataset, MinimalDataset
@@ -17,6 +18,9 @@ from test_training_fakes import FakeDataset, MinimalDataset
 import experiments.baselines as baselines
 from motionflows.config import TrainConfig
 from motionflows.evaluation import likelihood
+from motionflows.optim import averaged_parameters, parameter_average
+from motionflows.checkpoints import Checkpointer
+from motionflows.run import run_keys
 from motionflows.runs import read_metrics
 from motionflows.training import (
     evaluate_run,
@@ -234,6 +238,75 @@ def test_optimizer_clips_values_then_norm_and_warms_up():
     assert float(out["a"][0]) == 0.0  # warm-up: the first step has lr 0
     with pytest.raises(ValueError, match="optimizer"):
         make_optimizer(dataclasses.replace(tc, optimizer="sgdd"))
+
+
+def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_path):
+    # train.ema_decay changes no training step, and the model a run gives (the returned
+    # model, load_run, export) is the average of the iterates d^(6-k) weighted; the
+    # iterates come from a run without it that checkpoints every step
+    data, d = FakeDataset(), 0.6
+    every = dataclasses.replace(CONFIG.train, checkpoint_every=1, keep_checkpoints=6)
+    plain = train(
+        fake, dataclasses.replace(CONFIG, train=every), run_dir=tmp_path / "plain",
+        dataset=data, progress=False,
+    )  # fmt: skip
+    built = fake.build(CONFIG, key=run_keys(CONFIG.train.seed)["build"])
+    _, params, rest = nnx.split(built, nnx.Param, ...)
+    ckpt = Checkpointer(tmp_path / "plain" / "checkpoints", keep=6)
+    iterates = [_params(built)]
+    for step in range(1, 7):
+        state, _ = ckpt.restore({"params": params, "rest": rest}, step=step)
+        iterates.append([np.asarray(x) for x in jax.tree_util.tree_leaves(state["params"])])
+    ckpt.close()
+    np.testing.assert_array_equal(iterates[-1][0], _params(plain.model)[0])
+    want = iterates[0]
+    for p in iterates[1:]:
+        want = [d * a + (1 - d) * x for a, x in zip(want, p, strict=True)]
+
+    cfg = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, ema_decay=d))
+    avg = train(fake, cfg, run_dir=tmp_path / "avg", dataset=data, progress=False)
+    assert _losses(tmp_path / "avg") == _losses(tmp_path / "plain")
+    for got, w, last in zip(_params(avg.model), want, iterates[-1], strict=True):
+        np.testing.assert_allclose(got, w, rtol=1e-6, atol=1e-7)
+        assert not np.allclose(got, last)  # the average, not the last iterate
+    loaded = load_run(tmp_path / "avg", checkpoint="latest", load_data=False)[2]
+    for x, y in zip(_params(loaded), _params(avg.model), strict=True):
+        np.testing.assert_array_equal(x, y)
+    # validation scored the average: the step-6 row is the average's NLL
+    val = [r for r in read_metrics(tmp_path / "avg") if "val_nll" in r]
+    plain_val = [r for r in read_metrics(tmp_path / "plain") if "val_nll" in r]
+    assert val[-1]["val_nll"] != plain_val[-1]["val_nll"]
+
+    # --resume continues the iterate (not the average) and the average alike
+    def interrupt(step, out):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    part = train(
+        fake, cfg, run_dir=tmp_path / "b", dataset=data, progress=False, on_step=interrupt
+    )
+    assert part.status == "interrupted" and part.step == 3
+    resumed = train(fake, cfg, run_dir=tmp_path / "b", dataset=data, progress=False, resume=True)
+    assert _losses(tmp_path / "b") == _losses(tmp_path / "avg")
+    for x, y in zip(_params(resumed.model), _params(avg.model), strict=True):
+        np.testing.assert_array_equal(x, y)
+    with pytest.raises(ValueError, match="ema_decay"):
+        TrainConfig(ema_decay=1.0)
+
+
+@pytest.mark.standard_dtypes  # optax transforms called directly
+def test_parameter_average_passes_updates_through_and_averages():
+    opt = optax.chain(optax.sgd(0.5), parameter_average(0.75))
+    p = {"w": jnp.array([1.0, -2.0])}
+    state = opt.init(p)
+    np.testing.assert_array_equal(averaged_parameters(state)["w"], p["w"])
+    g = {"w": jnp.array([2.0, 2.0])}
+    updates, state = opt.update(g, state, p)
+    np.testing.assert_allclose(updates["w"], [-1.0, -1.0])  # sgd's, unchanged
+    np.testing.assert_allclose(averaged_parameters(state)["w"], [0.75 + 0.0, -1.5 - 0.75])
+    assert averaged_parameters(optax.adam(1.0).init(p)) is None
+    with pytest.raises(ValueError, match="decay"):
+        parameter_average(1.0)
 
 
 def test_resume_refuses_data_whose_standardiser_changed_and_keeps_the_saved_one(tmp_path):

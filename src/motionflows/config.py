@@ -170,6 +170,9 @@ class TrainConfig:
     eps: float = 1e-8
     min_lr_ratio: float = 0.0  # cosine: final lr = lr * min_lr_ratio; noam: the floor
     val_batch_size: int | None = None  # None = batch_size
+    # Polyak averaging: after every step avg <- d avg + (1 - d) params; validation, the
+    # checkpoints' "params" (sampling, eval, export) use avg. None: the last iterate.
+    ema_decay: float | None = None
 
     def __post_init__(self):
         _check_fields(self, TRAIN_LIMITS)
@@ -228,6 +231,7 @@ TRAIN_LIMITS: dict[str, _Limit] = {
     "eps": (0.0, 1.0, False, True),
     "min_lr_ratio": (0.0, 1.0, True, True),
     "val_batch_size": (1, INF, True, True),
+    "ema_decay": (0.0, 1.0, False, False),
 }
 
 

@@ -3,6 +3,7 @@
 ``make_optimizer(train)`` is an optax chain::
 
     [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw(schedule)
+        [-> parameter_average(ema_decay)]
 
 with the learning-rate schedule of :func:`learning_rate_schedule` (warm-up, then constant,
 cosine or MoGlow's "noam" rule). :func:`make_train_step` is the pure step
@@ -16,7 +17,7 @@ sync) when the loss, the gradient norm or the update is NaN/inf; the guard count
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -75,8 +76,60 @@ def gradient_clipping(train: cfg.TrainConfig) -> optax.GradientTransformation:
     return optax.chain(*parts) if parts else optax.identity()
 
 
+class ParameterAverageState(NamedTuple):
+    """The running average of the parameters (a pytree shaped like them, float32)."""
+
+    average: Any
+
+
+def parameter_average(decay: float) -> optax.GradientTransformation:
+    """Polyak averaging of the parameters, as the last link of an optax chain.
+
+    The updates pass through unchanged; the state keeps, after every update,
+
+        average <- decay * average + (1 - decay) * (params + updates)
+
+    starting from the parameters it is initialised with (after any data-dependent
+    initialisation), so it averages the iterates over the last ~1 / (1 - decay) steps.
+    Read it with :func:`averaged_parameters`. Skipping a step (the trainer's non-finite
+    guard keeps the old optimiser state) skips its average update too.
+    """
+    d = float(decay)
+    if not 0.0 < d < 1.0:
+        raise ValueError(f"parameter_average needs 0 < decay < 1, got {decay}")
+
+    def init(params):
+        return ParameterAverageState(jax.tree_util.tree_map(jnp.copy, params))  # own buffers
+
+    def update(updates, state, params=None):
+        if params is None:
+            raise ValueError("parameter_average needs the parameters: update(g, s, params)")
+        new = optax.apply_updates(params, updates)
+        average = jax.tree_util.tree_map(
+            lambda a, p: d * a + (1.0 - d) * p, state.average, new
+        )
+        return updates, ParameterAverageState(average)
+
+    return optax.GradientTransformation(init, update)
+
+
+def averaged_parameters(opt_state: Any) -> Any | None:
+    """The running average of :func:`parameter_average` held in ``opt_state``, or None when
+    the optimiser has none."""
+    def is_average(node):
+        return isinstance(node, ParameterAverageState)
+
+    found = [
+        node
+        for node in jax.tree_util.tree_leaves(opt_state, is_leaf=is_average)
+        if is_average(node)
+    ]
+    return found[0].average if found else None
+
+
 def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
-    """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw."""
+    """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw
+    -> [parameter_average(ema_decay)]."""
     parts = [gradient_clipping(train)]
     lr = learning_rate_schedule(train)
     if train.optimizer == "adam":
@@ -89,6 +142,8 @@ def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
         )
     else:
         raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {train.optimizer!r}")
+    if train.ema_decay is not None:
+        parts.append(parameter_average(train.ema_decay))
     return optax.chain(*parts)
 
 

@@ -4,7 +4,10 @@
 initialises it from the first batch (``module.initialize``), then runs one jitted train
 step per batch (:func:`motionflows.optim.make_train_step`: value and gradient of
 ``module.loss`` over the ``nnx.Param`` leaves, clipping, Adam(W), NaN/inf steps skipped
-inside the step and counted).
+inside the step and counted). With ``train.ema_decay`` the optimiser also keeps a running
+average of the parameters (:func:`motionflows.optim.parameter_average`), which validation,
+the returned model and the checkpoints' ``params`` use (the iterate is saved beside it as
+``train_params`` for ``resume``).
 
 Determinism: the batch of step ``i`` is ``dataset.batch("train", B, seed=train.seed,
 index=i)`` and its key ``fold_in(train_key, i)`` (:func:`motionflows.run.run_keys`), so a
@@ -49,6 +52,7 @@ from motionflows.compile_cache import cached, jitted_evaluate
 from motionflows.errors import RunError
 from motionflows.evaluation import likelihood
 from motionflows.optim import (
+    averaged_parameters,
     gradient_clipping,
     init_guard,
     learning_rate_schedule,
@@ -335,8 +339,11 @@ class _Loop:
         if resume and self.ckpt.latest_step() is not None:
             graphdef, params, rest = nnx.split(model, nnx.Param, ...)
             templates = {"params": params, "rest": rest, "opt": self.optimizer.init(params)}
+            if tc.ema_decay is not None:  # "params" holds the average; the iterate is apart
+                templates["train_params"] = params
             state, meta = self.ckpt.restore(templates, which="latest")
-            params, rest, opt_state = state["params"], state["rest"], state["opt"]
+            params = state["train_params" if tc.ema_decay is not None else "params"]
+            rest, opt_state = state["rest"], state["opt"]
             self.start, self.best = int(meta["step"]), meta.get("best_val_nll")
             skipped = jnp.asarray(meta.get("skipped", 0), jnp.int32)
             self.guard = {**init_guard(), "skipped": skipped}
@@ -365,8 +372,15 @@ class _Loop:
             lambda: make_train_step(self.module, graphdef, self.optimizer),
         )
 
+    def model_params(self):
+        """The parameters the model is used with: the running average of
+        ``train.ema_decay`` when it is set (:func:`motionflows.optim.parameter_average`),
+        else the training iterate."""
+        average = averaged_parameters(self.opt_state)
+        return self.params if average is None else average
+
     def model(self):
-        return nnx.merge(self.graphdef, self.params, self.rest)
+        return nnx.merge(self.graphdef, self.model_params(), self.rest)
 
     def save(self, step: int, which: str = "latest", extra: dict | None = None) -> None:
         meta = {
@@ -377,7 +391,11 @@ class _Loop:
             "skipped": int(self.guard["skipped"]),
             **(extra or {}),
         }
-        state = {"params": self.params, "rest": self.rest, "opt": self.opt_state}
+        # "params" are the ones to use (sampling, eval, export read only them); with an
+        # average, the training iterate goes beside them for --resume
+        state = {"params": self.model_params(), "rest": self.rest, "opt": self.opt_state}
+        if state["params"] is not self.params:
+            state["train_params"] = self.params
         self.ckpt.save(step, state, meta, which=which)
 
     def log(self, done: int, bar) -> None:
