@@ -16,10 +16,11 @@ from flax import nnx
 from test_training_fakes import FakeDataset, MinimalDataset
 
 import experiments.baselines as baselines
+from motionflows.checkpoints import Checkpointer
 from motionflows.config import TrainConfig
+from motionflows.errors import RunError
 from motionflows.evaluation import likelihood
 from motionflows.optim import averaged_parameters, parameter_average
-from motionflows.checkpoints import Checkpointer
 from motionflows.run import run_keys
 from motionflows.runs import read_metrics
 from motionflows.training import (
@@ -282,14 +283,19 @@ def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_pat
         if step == 2:
             os.kill(os.getpid(), signal.SIGINT)
 
-    part = train(
-        fake, cfg, run_dir=tmp_path / "b", dataset=data, progress=False, on_step=interrupt
-    )
+    part = train(fake, cfg, run_dir=tmp_path / "b", dataset=data, progress=False, on_step=interrupt)
     assert part.status == "interrupted" and part.step == 3
     resumed = train(fake, cfg, run_dir=tmp_path / "b", dataset=data, progress=False, resume=True)
     assert _losses(tmp_path / "b") == _losses(tmp_path / "avg")
     for x, y in zip(_params(resumed.model), _params(avg.model), strict=True):
         np.testing.assert_array_equal(x, y)
+    # turning the average off (or on) on resume is refused, and config.json is kept
+    saved = (tmp_path / "b" / "config.json").read_text()
+    with pytest.raises(RunError, match="ema_decay=0.6 and cannot resume with None"):
+        train(fake, CONFIG, run_dir=tmp_path / "b", dataset=data, progress=False, resume=True)
+    with pytest.raises(RunError, match="ema_decay=None and cannot resume with 0.6"):
+        train(fake, cfg, run_dir=tmp_path / "plain", dataset=data, progress=False, resume=True)
+    assert (tmp_path / "b" / "config.json").read_text() == saved
     with pytest.raises(ValueError, match="ema_decay"):
         TrainConfig(ema_decay=1.0)
 

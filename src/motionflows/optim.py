@@ -105,9 +105,7 @@ def parameter_average(decay: float) -> optax.GradientTransformation:
         if params is None:
             raise ValueError("parameter_average needs the parameters: update(g, s, params)")
         new = optax.apply_updates(params, updates)
-        average = jax.tree_util.tree_map(
-            lambda a, p: d * a + (1.0 - d) * p, state.average, new
-        )
+        average = jax.tree_util.tree_map(lambda a, p: d * a + (1.0 - d) * p, state.average, new)
         return updates, ParameterAverageState(average)
 
     return optax.GradientTransformation(init, update)
@@ -116,6 +114,7 @@ def parameter_average(decay: float) -> optax.GradientTransformation:
 def averaged_parameters(opt_state: Any) -> Any | None:
     """The running average of :func:`parameter_average` held in ``opt_state``, or None when
     the optimiser has none."""
+
     def is_average(node):
         return isinstance(node, ParameterAverageState)
 

@@ -242,6 +242,7 @@ def train(
     dataset = config.data.load() if dataset is None else dataset
     if resume:
         _check_same_standardizer(run_dir, dataset.standardizer)
+        _check_same_averaging(run_dir, tc)
     mesh = data_mesh() if mesh is None else mesh
     if _primary():  # the other processes of a multi-process run write nothing here
         for sub in ("checkpoints", "samples"):
@@ -290,6 +291,21 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
         file=sys.stderr,
     )
     return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
+
+
+def _check_same_averaging(run_dir: Path, tc: cfg.TrainConfig) -> None:
+    """RunError if a resume turns ``train.ema_decay`` on or off: the checkpoints' ``params``
+    are the average in a run with it and the iterate in one without (another decay is
+    fine: the same state)."""
+    saved = cfg.read_config_json(run_dir / "config.json")["config"].get("train", {})
+    before = saved.get("ema_decay")
+    if (before is None) != (tc.ema_decay is None):
+        raise RunError(
+            f"{run_dir} was trained with train.ema_decay={before} and cannot resume with "
+            f"{tc.ema_decay}: its checkpoints hold "
+            f"{'no' if before is None else 'a'} parameter average; resume without changing "
+            "train.ema_decay, or start a new run"
+        )
 
 
 def _check_same_standardizer(run_dir: Path, standardizer) -> None:
