@@ -243,8 +243,9 @@ def test_optimizer_clips_values_then_norm_and_warms_up():
 
 def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_path):
     # train.ema_decay changes no training step, and the model a run gives (the returned
-    # model, load_run, export) is the average of the iterates d^(6-k) weighted; the
-    # iterates come from a run without it that checkpoints every step
+    # model, load_run, export) is the exponential average of the iterates p_0..p_6
+    # (avg_k = d avg_{k-1} + (1 - d) p_k); they come from a run without it that
+    # checkpoints every step
     data, d = FakeDataset(), 0.6
     every = dataclasses.replace(CONFIG.train, checkpoint_every=1, keep_checkpoints=6)
     plain = train(
@@ -309,7 +310,8 @@ def test_parameter_average_passes_updates_through_and_averages():
     g = {"w": jnp.array([2.0, 2.0])}
     updates, state = opt.update(g, state, p)
     np.testing.assert_allclose(updates["w"], [-1.0, -1.0])  # sgd's, unchanged
-    np.testing.assert_allclose(averaged_parameters(state)["w"], [0.75 + 0.0, -1.5 - 0.75])
+    want = [0.75 * 1.0 + 0.25 * 0.0, 0.75 * -2.0 + 0.25 * -3.0]  # d avg + (1 - d) (p + u)
+    np.testing.assert_allclose(averaged_parameters(state)["w"], want)
     assert averaged_parameters(optax.adam(1.0).init(p)) is None
     with pytest.raises(ValueError, match="decay"):
         parameter_average(1.0)
