@@ -410,7 +410,7 @@ class _Loop:
         # "params" are the ones to use (sampling, eval, export read only them); with an
         # average, the training iterate goes beside them for --resume
         state = {"params": self.model_params(), "rest": self.rest, "opt": self.opt_state}
-        if state["params"] is not self.params:
+        if self.tc.ema_decay is not None:  # as start_from reads it back
             state["train_params"] = self.params
         self.ckpt.save(step, state, meta, which=which)
 
