@@ -12,7 +12,9 @@ Both reached the user as tracebacks, before or after the one-line error, in abou
 runs of ``motionflows sample`` on a damaged exported MoGlow. The failure is reported once
 (``CheckpointReadError`` or the fallback warning), so from then on the process drops those
 echoes; every other unraisable exception and asyncio record reaches the hooks that were
-there before.
+there before. An echo can also arrive before the failure is reported, while orbax is still
+unwinding (an aborted read's task collected on the way out); so within :func:`quiet_orbax`
+both kinds are held and passed on at the block's end, when the failed folder is known.
 """
 
 from __future__ import annotations
@@ -34,14 +36,24 @@ def _is_echo(exc: BaseException | None, text: str) -> bool:
     return any(folder in text for folder in _DAMAGED)
 
 
+_HELD: list[list] = []
+"""One list per open :func:`quiet_orbax` block, innermost last: the asyncio records with an
+exception and the unraisable exceptions that arrived in it, passed on at its end."""
+
+
 def _install_unraisable_filter():
-    """Wrap ``sys.unraisablehook`` (once) so that it drops echoes; returns the undo."""
+    """Wrap ``sys.unraisablehook`` (once) so that it drops echoes and, within a
+    :func:`quiet_orbax` block, holds the rest; returns the undo."""
     previous = sys.unraisablehook
     if getattr(previous, "drops_echoes", False):
         return lambda: None
 
     def hook(unraisable) -> None:
-        if not _is_echo(unraisable.exc_value, f"{unraisable.exc_value} {unraisable.object!r}"):
+        if _is_echo(unraisable.exc_value, f"{unraisable.exc_value} {unraisable.object!r}"):
+            return
+        if _HELD:
+            _HELD[-1].append(unraisable)
+        else:
             previous(unraisable)
 
     hook.drops_echoes = True
@@ -57,23 +69,49 @@ class _DropEchoes(logging.Filter):
         return exc is None or not _is_echo(exc, f"{record.getMessage()} {exc}")
 
 
+class _Hold(logging.Filter):
+    """On the ``asyncio`` logger while a :func:`quiet_orbax` block is open: holds the
+    records that carry an exception in the innermost block's list."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and _HELD:
+            _HELD[-1].append(record)
+            return False
+        return True
+
+
+_HOLD = _Hold()
+
+
 @contextlib.contextmanager
 def quiet_orbax():
-    """Within the block: orbax and absl log nothing below CRITICAL, and echoes of aborted
-    reads that arrive while orbax is still unwinding are dropped. Once a step has failed
-    (:func:`drop_echoes_of`), the echo filter stays for the rest of the process."""
+    """Within the block: orbax and absl log nothing below CRITICAL; asyncio's records of
+    exceptions and unraisable exceptions are held and, at the block's end, passed on unless
+    they echo a step that failed in it (:func:`drop_echoes_of`). Once a step has failed,
+    the echo filters stay for the rest of the process."""
     loggers = [logging.getLogger(n) for n in ("absl", "orbax")]
     levels = [lg.level for lg in loggers]
     for lg in loggers:
         lg.setLevel(logging.CRITICAL)
     undo = _install_unraisable_filter()
+    asyncio_log = logging.getLogger("asyncio")
+    _HELD.append([])
+    asyncio_log.addFilter(_HOLD)  # once, however deeply blocks nest
     try:
         yield
     finally:
+        held = _HELD.pop()
+        if not _HELD:
+            asyncio_log.removeFilter(_HOLD)
         for lg, level in zip(loggers, levels, strict=True):
             lg.setLevel(level)
         if not _DAMAGED:
             undo()
+        for item in held:  # through the filters again: now they know the failed folders
+            if isinstance(item, logging.LogRecord):
+                asyncio_log.handle(item)
+            else:
+                sys.unraisablehook(item)
 
 
 def drop_echoes_of(folder: Path) -> None:
