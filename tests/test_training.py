@@ -241,6 +241,32 @@ def test_optimizer_clips_values_then_norm_and_warms_up():
         make_optimizer(dataclasses.replace(tc, optimizer="sgdd"))
 
 
+@pytest.mark.standard_dtypes  # optax transforms called directly
+def test_weight_decay_is_l2_with_adam_and_decoupled_with_adamw():
+    # "adam": torch.optim.Adam's weight_decay, w * p added to the (clipped) gradient before
+    # Adam's moments; "adamw": decoupled, p -= lr * w * p beside Adam's step. Before, "adam"
+    # ignored weight_decay without a word.
+    p = {"a": jnp.array([2.0, -1.0]), "b": jnp.array([0.5])}
+    g = {"a": jnp.array([10.0, 0.2]), "b": jnp.array([-0.3])}
+    tc = TrainConfig(lr=0.1, clip_value=1.0, weight_decay=0.5, optimizer="adam")
+
+    def first_update(config, grads):
+        opt = make_optimizer(config)
+        out, _ = opt.update(grads, opt.init(p), p)
+        return np.concatenate([np.asarray(out["a"]), np.asarray(out["b"])])
+
+    clipped = jax.tree.map(lambda x: jnp.clip(x, -1.0, 1.0), g)
+    l2 = jax.tree.map(lambda x, q: x + 0.5 * q, clipped, p)
+    plain = dataclasses.replace(tc, weight_decay=0.0, clip_value=None)
+    np.testing.assert_allclose(first_update(tc, g), first_update(plain, l2), rtol=1e-6)
+    assert not np.allclose(first_update(tc, g), first_update(plain, clipped))
+    decoupled = dataclasses.replace(tc, optimizer="adamw")
+    flat_p = np.array([2.0, -1.0, 0.5])
+    np.testing.assert_allclose(
+        first_update(decoupled, g), first_update(plain, clipped) - 0.1 * 0.5 * flat_p, rtol=1e-6
+    )
+
+
 def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_path):
     # train.ema_decay changes no training step, and the model a run gives (the returned
     # model, load_run, export) is the exponential average of the iterates p_0..p_6

@@ -156,7 +156,7 @@ class TrainConfig:
     schedule: str = "constant"  # "constant", "cosine" (after warm-up) or "noam" (MoGlow's)
     clip_value: float | None = None  # element-wise gradient clipping, applied first
     clip_norm: float | None = None  # then global-norm clipping
-    weight_decay: float = 0.0
+    weight_decay: float = 0.0  # "adam": L2 on the gradient (torch's); "adamw": decoupled
     eval_every: int = 200
     eval_batches: int = 8
     log_every: int = 10
@@ -164,7 +164,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     max_nonfinite: int = 10  # consecutive non-finite steps before the run stops
     seed: int = 0
-    optimizer: str = "adam"  # "adam" or "adamw" (weight_decay applies to "adamw")
+    optimizer: str = "adam"  # "adam" or "adamw"
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8

@@ -128,10 +128,17 @@ def averaged_parameters(opt_state: Any) -> Any | None:
 
 def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
     """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw
-    -> [parameter_average(ema_decay)]."""
+    -> [parameter_average(ema_decay)].
+
+    ``weight_decay`` w acts on every parameter. With "adam" it is an L2 penalty, as
+    ``torch.optim.Adam``'s: w * p is added to the clipped gradient before Adam's moments.
+    With "adamw" it is decoupled (Loshchilov & Hutter): p -= lr_t * w * p beside Adam's step.
+    """
     parts = [gradient_clipping(train)]
     lr = learning_rate_schedule(train)
     if train.optimizer == "adam":
+        if train.weight_decay:
+            parts.append(optax.add_decayed_weights(train.weight_decay))
         parts.append(optax.adam(lr, b1=train.b1, b2=train.b2, eps=train.eps))
     elif train.optimizer == "adamw":
         parts.append(
