@@ -287,6 +287,12 @@ def test_load_control_file(tmp_path):
     np.save(tmp_path / "nan.npy", np.full((10, 3), np.nan))
     with pytest.raises(ValueError, match="non-finite"):
         load_control(tmp_path / "nan.npy")
+    # the message says where the first bad value is and what to do about it
+    holes = np.ones((10, 3))
+    holes[6, 2], holes[8, 0] = np.inf, np.nan
+    np.save(tmp_path / "holes.npy", holes)
+    with pytest.raises(ValueError, match=r"2 of 10 frames.*first at frame 6.*np.nan_to_num"):
+        load_control(tmp_path / "holes.npy")
     assert load_control("run", 2.0).shape == (40, 3)
     # a complex control used to lose its imaginary part without a word
     np.save(tmp_path / "complex.npy", np.ones((10, 3)) * (1 + 1j))

@@ -102,8 +102,13 @@ def validate_control(control, *, path: str | None = None) -> np.ndarray:
         )
     if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
         raise ValueError(f"control{where} must hold real numbers, got dtype {arr.dtype}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"control{where} has non-finite values")
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise ValueError(
+            f"control{where} has non-finite values (NaN or inf) in {int(bad.sum())} of "
+            f"{len(arr)} frames, the first at frame {int(np.argmax(bad))}; fill or cut them "
+            "(e.g. np.nan_to_num, or keep only the finite frames) and save it again"
+        )
     return arr.astype(np.float32)
 
 
