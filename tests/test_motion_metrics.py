@@ -287,3 +287,28 @@ def test_stride_period_finds_the_feet_alternation_and_not_its_multiples():
     assert M.stride_period(slow.pose[None], fps=fps) > 1.2 * M.stride_period(
         fast.pose[None], fps=fps
     )
+    # a window too short for any lag is one clear error (it was an IndexError), naming the
+    # frames needed: a peak needs three lags from shortest * fps up to T / 2
+    with pytest.raises(ValueError, match=r"needs at least 24 frames, got 10"):
+        M.stride_period(pose[:1, :10].reshape(1, 10, POSE_DIM), fps=fps)
+    M.stride_period(pose[:1, :24].reshape(1, 24, POSE_DIM), fps=fps)  # enough: no error
+
+
+def test_contact_metrics_refuse_non_finite_input():
+    """A NaN in one frame used to make foot_sliding NaN while skate_ratio and contact_rate
+    counted the frame as 'no contact' and returned a clean-looking number."""
+    pose, control = _stand(2, 12), np.zeros((2, 12, 3))
+    bad_pose = pose.copy()
+    bad_pose[1, 5, 0] = np.nan  # the hips' x: not a foot, so no contact test touches it
+    bad_control = control.copy()
+    bad_control[0, 3, 2] = np.inf
+    for metric in (M.foot_sliding, M.skate_ratio):
+        metric(pose, control, fps=20.0)
+        with pytest.raises(ValueError, match="pose contains non-finite values.*diverged"):
+            metric(bad_pose, control, fps=20.0)
+        with pytest.raises(ValueError, match="control contains non-finite values"):
+            metric(pose, bad_control, fps=20.0)
+    with pytest.raises(ValueError, match="pose contains non-finite values"):
+        M.contact_rate(bad_pose)
+    with pytest.raises(ValueError, match="pose contains non-finite values"):
+        M.motion_quality(bad_pose, control, fps=20.0)

@@ -216,6 +216,21 @@ def test_foot_lock_keeps_the_drawn_samples_and_the_demo_shows_both(
     assert names == [f"{out.name}_walk.npz", f"{out.name}_walk_foot-lock.npz"]
 
 
+def test_foot_lock_on_the_command_line_leaves_diverged_samples_as_drawn():
+    """A sample that blew up (NaN) is kept as drawn, with a warning, and the others are
+    locked: the foot lock would otherwise refuse the whole draw and nothing would be saved."""
+    from motionflows.data.synthetic import straight_walk
+    from motionflows.foot_lock import foot_lock
+
+    walk = straight_walk(1.2, seconds=2.0)
+    pose = np.stack([walk.pose, walk.pose, walk.pose]).astype(np.float32)
+    pose[1, 10:] = np.nan
+    with pytest.warns(UserWarning, match="1 of 3 samples diverged"):
+        locked = cli._foot_lock(pose, walk.control)
+    np.testing.assert_array_equal(locked[1], pose[1])
+    np.testing.assert_allclose(locked[0], foot_lock(pose[:1], walk.control[None])[0])
+
+
 def test_play_with_foot_lock_shows_and_records_the_held_feet(exported):
     """``play --foot-lock``: each streamed frame's joints are its (held) pose placed on the
     root path, only the legs differ from the drawn pose, and the recording keeps both."""

@@ -230,10 +230,18 @@ def cmd_sample(args) -> int:
 
 def _foot_lock(pose: np.ndarray, control: np.ndarray) -> np.ndarray:
     """``--foot-lock``: poses (N, T, 63) with their planted feet held (motionflows.foot_lock)
-    on one control (T, 3) or one each (N, T, 3)."""
-    from motionflows.foot_lock import foot_lock
+    on one control (T, 3) or one each (N, T, 3); diverged samples stay as drawn, with a
+    warning."""
+    from motionflows.bench.scoring import DIVERGED_METRES, diverged, foot_locked
 
-    return foot_lock(pose, np.broadcast_to(control, pose.shape[:-1] + (3,)))
+    bad = int(diverged(pose).sum())
+    if bad:
+        warnings.warn(
+            f"{bad} of {len(pose)} samples diverged (NaN/inf or beyond {DIVERGED_METRES:g} m): "
+            "--foot-lock leaves them as drawn",
+            stacklevel=2,
+        )
+    return foot_locked(pose, np.broadcast_to(control, pose.shape[:-1] + (3,)))
 
 
 def _render_run(args) -> int:

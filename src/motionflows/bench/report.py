@@ -31,8 +31,8 @@ MOTION_NOTE = (
     "(189-d), against the same test windows; diversity: mean per-joint distance between pairs "
     "of samples drawn for one control (the first sampled test control); for the ground truth, "
     "the natural diversity: the mean per-joint distance between each real test window and "
-    "the window of another take whose control is closest (RMS over frames, channels "
-    "divided by their std); pose / motion error: "
+    "the window of another take whose control is closest (Euclidean over frames and channels, "
+    "each divided by its std); pose / motion error: "
     "Habibie et al.'s errors (root-relative joints / world joints after integrating the "
     "control) between one sample and the test motion, averaged over the report times "
     "(their frames 70, 90, 120, 160, 210 at 60 fps, at this frame rate, those inside the "
@@ -58,8 +58,8 @@ REFERENCE_NOTE = (
     "control-independent metrics (its FDs are against the test windows; its diversity is "
     "the training split's natural diversity); *nearest "
     "training window* gives each test control the training window whose control is closest "
-    "(RMS over frames, channels divided by their std) and scores it on the test control as a "
-    "sample: motion matching over whole windows."
+    "(Euclidean over frames and channels, each divided by its std) and scores it on the test "
+    "control as a sample: motion matching over whole windows."
 )
 """How the reference rows were made (printed under the motion table when they are there)."""
 

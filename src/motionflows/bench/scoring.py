@@ -19,7 +19,8 @@ from motionflows.errors import RunError
 from motionflows.windows import complete_windows, pick, standardized, subset
 
 DIVERGED_METRES = 10.0
-"""A sample with a root-relative coordinate beyond this (or NaN/inf) counts as diverged."""
+"""A sample with a coordinate beyond this in its root frame (any joint, any axis, height
+included) or a NaN/inf counts as diverged."""
 
 MOTION_METRICS: dict[str, dict[str, str]] = {
     "foot_sliding": {"label": "foot sliding", "unit": "m/s"},
@@ -195,7 +196,7 @@ def _unavailable(exp) -> str:
 
 
 def diverged(samples_m) -> np.ndarray:
-    """(N,) bool: sample n holds NaN/inf or a root-relative coordinate beyond
+    """(N,) bool: sample n holds NaN/inf or a root-frame coordinate beyond
     :data:`DIVERGED_METRES`."""
     x = np.asarray(samples_m, np.float64).reshape(len(samples_m), -1)
     return ~np.all(np.isfinite(x) & (np.abs(x) <= DIVERGED_METRES), axis=1)
@@ -284,7 +285,11 @@ def motion_metrics(samples_m, control_m, reference_m, diversity_m, fps: float) -
 
     Returns the scalars of :data:`MOTION_METRICS` plus ``"prediction"``: the per-time errors.
     Diverged samples (see :func:`diverged`) are counted in ``"diverged"`` and left out of
-    every other metric; ValueError when all diverged.
+    every other metric, their ground-truth windows with them: the Frechet distances compare
+    the samples with the real motion of the same controls (so with diverged samples each
+    model's reference set is its own subset of the windows). Diverged draws of
+    ``diversity_m`` are dropped from the diversity without a count. ValueError when all
+    samples diverged.
     """
     from motionflows.evaluation import motion as mm
 

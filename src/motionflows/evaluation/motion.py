@@ -35,6 +35,16 @@ def _check_pose(pose: Any, name: str = "pose") -> None:
         raise ValueError(f"{name} must have shape (..., T, {POSE_DIM}) in metres, got {shape}")
 
 
+def _check_finite(x: Any, name: str) -> None:
+    """ValueError when numpy ``x`` holds NaN or inf: a metric of such motion would be NaN or,
+    worse, a clean-looking number computed as if the frame were not there."""
+    if not np.isfinite(x).all():
+        raise ValueError(
+            f"{name} contains non-finite values (NaN or inf); leave diverged samples out "
+            "first (motionflows.bench.scoring.diverged finds them)"
+        )
+
+
 def _check_control(control: Any, name: str = "control") -> None:
     shape = tuple(np.shape(control))
     if len(shape) < 2 or shape[-1] != 3:
@@ -128,7 +138,9 @@ def motion_error(
     for models that output one; (N, T, 3) or (S, N, T, 3)), default ``control``. Against
     :func:`pose_error` it adds the hip's offset from the root and, with ``pred_control``,
     the drift of the trajectory. With the same control the rigid placement preserves
-    distances, so the two errors then differ only by the root joint terms."""
+    distances, so this is then the mean over all 21 joints of the root-frame error, where
+    :func:`pose_error` measures each joint relative to the Hips: a prediction off only in
+    the hip's position by d scores |d| / 21 here and |d| on every joint there."""
     _check_pose(target, "target")
     tgt = np.asarray(target, dtype=np.float64)
     ctl = np.asarray(control, dtype=np.float64)
@@ -226,6 +238,7 @@ def foot_contacts(
     numpy in (float64 inside), numpy out; a jax array in (any dtype, jittable), jax out.
     """
     if _xp(pose) is np:
+        _check_finite(pose, "pose")
         j = _joints(pose)
     else:
         j = pose.reshape(pose.shape[:-1] + (NUM_JOINTS, 3))
@@ -253,6 +266,7 @@ def _contact_steps(pose, control, fps, rule, contact_height):
     """(speed, contact) of each foot step t -> t+1, both (..., T-1, 2): the foot centre's
     :func:`foot_speeds` and contact at both t and t+1."""
     pose = np.asarray(pose, dtype=np.float64)
+    _check_finite(control, "control")
     contact = foot_contacts(pose, rule=rule, contact_height=contact_height)
     both = contact[..., :-1, :] & contact[..., 1:, :]
     return foot_speeds(pose, control, fps=fps), both
@@ -324,9 +338,10 @@ def stride_period(
     d = (j[..., left, :] - j[..., right, :])[..., [0, 2]]  # (..., T, 2) horizontal
     d = d.reshape(-1, *d.shape[-2:])
     t = d.shape[1]
-    lags = np.arange(max(1, round(shortest * fps)), min(round(longest * fps), t // 2) + 1)
+    first = max(1, round(shortest * fps))
+    lags = np.arange(first, min(round(longest * fps), t // 2) + 1)
     if lags.size < 3:  # a peak needs a lag on each side within half the window
-        raise ValueError(f"stride_period needs at least {2 * (lags[0] + 2)} frames, got {t}")
+        raise ValueError(f"stride_period needs at least {2 * (first + 2)} frames, got {t}")
     r = np.empty((d.shape[0], lags.size))
     for k, lag in enumerate(lags):
         a, b = d[:, :-lag], d[:, lag:]
@@ -474,11 +489,11 @@ def natural_diversity(pose: Any, control: Any, *, takes: Any = None) -> float:
 
     Each window i (pose (N, T, 63) metres, control (N, T, 3)) is paired with its nearest
     neighbour j in control space: the window, from another take when ``takes`` (N,) is
-    given, whose control sequence is closest by :func:`control_distances` (RMS over frames
-    after dividing each control channel by its standard deviation over the set, so forward,
-    sideways and turn count alike). Returns the mean over windows of the mean per-joint
-    distance (metres) between the poses of i and j: how different two real motions with
-    close controls are. Needs N >= 2 (and two takes when ``takes`` is given)."""
+    given, whose control sequence is closest by :func:`control_distances` (Euclidean over
+    frames and channels after dividing each control channel by its standard deviation over
+    the set, so forward, sideways and turn count alike). Returns the mean over windows of
+    the mean per-joint distance (metres) between the poses of i and j: how different two
+    real motions with close controls are. Needs N >= 2 (and two takes when ``takes`` is given)."""
     p = _joints(pose)
     c = np.asarray(control, dtype=np.float64)
     _check_control(c)
