@@ -158,6 +158,14 @@ def test_bvh_source_and_performer_split(tmp_path):
     )
     assert syn.info["performers"]["test"] == ["S3"]
     assert "S3" not in syn.info["performers"]["train"]
+    kw = dict(n_clips=8, seconds=4.0, window=20, split_by="performer", cache=False)
+    # validating on the test performer would select the model on its test takes
+    with pytest.raises(ValueError, match=r"\['S3'\] both for validation and for test"):
+        load_dataset("synthetic", val_performers=["S3"], **kw)
+    # one name as a string is that performer, not its characters
+    one = load_dataset("synthetic", test_performers="S2", val_performers="S1", **kw)
+    assert one.info["performers"]["test"] == ["S2"]
+    assert one.info["performers"]["val"] == ["S1"]
 
 
 def test_styles_keep_only_those_takes_in_every_split():

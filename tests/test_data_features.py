@@ -134,6 +134,9 @@ def test_resample_keeps_speed():
     y = resample(x, 30.0, 20.0)
     assert y.shape[0] == 21
     np.testing.assert_allclose(np.diff(y[:, 0]), 0.075)
+    # a BVH's rounded "Frame Time: 0.0333333" at a target of 30 fps: copied, not
+    # interpolated 1e-6 of a frame off (which lost the last frame)
+    np.testing.assert_array_equal(resample(x, 1 / 0.0333333, 30.0), x)
 
 
 def test_synthetic_straight_walk_control_matches_speed():

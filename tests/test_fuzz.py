@@ -513,6 +513,8 @@ def test_download_stays_in_dest_caps_sizes_and_fails_fast(tmp_path):
         httpd.shutdown()
         httpd.server_close()
     assert not (tmp_path / "d2" / "big.bvh").exists()
+    # the folder's manifest is the one the files were checked against, not the packaged one
+    assert (tmp_path / "d2" / "manifest.csv").read_bytes() == manifest.read_bytes()
 
     # an unreachable server: one error after the first file's tries, not one per file
     with socket.socket() as s:

@@ -34,7 +34,7 @@ def _code_version() -> str:
     """PIPELINE_VERSION plus a hash of the feature code, so cached clips follow code edits."""
     here = Path(__file__).parent
     h = hashlib.sha1(PIPELINE_VERSION.encode())
-    for name in ("bvh.py", "skeleton.py", "features.py", "synthetic.py"):
+    for name in ("bvh.py", "skeleton.py", "features.py", "synthetic.py", "names.py"):
         h.update((here / name).read_bytes())
     return h.hexdigest()[:12]
 

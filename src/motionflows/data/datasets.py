@@ -76,6 +76,13 @@ def _hash_order(name: str) -> str:
     return hashlib.sha1(name.encode()).hexdigest()
 
 
+def _names(performers) -> list[str]:
+    """A list of performer names from None, one name, or an iterable of names."""
+    if not performers:
+        return []
+    return [performers] if isinstance(performers, str) else [str(p) for p in performers]
+
+
 def _split_names(
     clips: list[Clip],
     split_by: str,
@@ -115,11 +122,18 @@ def _split_names(
             f"split_by='performer' needs at least 2 performers, found {performers}; use "
             "split_by='take'"
         )
-    test_p = list(test_performers) if test_performers else [performers[-1]]
-    val_p = list(val_performers) if val_performers else []
+    test_p = _names(test_performers) or [performers[-1]]
+    val_p = _names(val_performers)
     unknown = sorted(set(test_p + val_p) - set(performers))
     if unknown:
         raise ValueError(f"unknown performer(s) {unknown}; the data have {performers}")
+    both = sorted(set(test_p) & set(val_p))
+    if both:
+        raise ValueError(
+            f"performer(s) {both} both for validation and for test: the model would be "
+            f"selected on its test takes; give val_performers others than the test ones "
+            f"({test_p})"
+        )
     rest = [c for c in clips if c.meta.get("performer") not in set(test_p + val_p)]
     if not rest:
         raise ValueError("no performer is left for training; hold out fewer performers")

@@ -166,10 +166,12 @@ def _save(target: Path, data: bytes) -> None:
     os.replace(tmp, target)
 
 
-def _finish(out: Path, total: int, failures: list[str], summary: dict, progress) -> None:
-    """Copy the manifest beside the files, then raise on ``failures`` or, with
-    ``progress=True``, print the summary line with the attribution."""
-    shutil.copyfile(MANIFEST, out / "manifest.csv")
+def _finish(
+    out: Path, manifest: Path, total: int, failures: list[str], summary: dict, progress
+) -> None:
+    """Copy the manifest the files were checked against beside them, then raise on
+    ``failures`` or, with ``progress=True``, print the summary line with the attribution."""
+    shutil.copyfile(manifest, out / "manifest.csv")
     if failures:
         raise MotionDataError(
             f"{len(failures)} of {total} file(s) failed: {failures[:3]}; check the network "
@@ -247,5 +249,5 @@ def download_bandai(
         summary["downloaded"] += 1
         summary["bytes"] += len(data)
         report(dict(event, status="downloaded, checksum ok"))
-    _finish(out, len(rows), failures, summary, progress)
+    _finish(out, Path(manifest or MANIFEST), len(rows), failures, summary, progress)
     return summary

@@ -141,7 +141,7 @@ def resample(x: np.ndarray, src_fps: float, dst_fps: float) -> np.ndarray:
     ``K > MAX_RESAMPLED_FRAMES``.
     """
     x = np.asarray(x, dtype=np.float64)
-    if abs(src_fps - dst_fps) < 1e-9 * dst_fps:
+    if abs(src_fps - dst_fps) < 1e-5 * dst_fps:  # a BVH's Frame Time has ~6 digits
         return x.copy()
     n = x.shape[0]
     ratio = dst_fps / src_fps
