@@ -123,6 +123,13 @@ def test_guard_skips_nan_steps_and_stops_after_max_nonfinite(tmp_path):
     assert one.status == "finished"
     rows = [r for r in read_metrics(tmp_path / "one") if "skipped" in r]
     assert rows[-1]["skipped"] == 1 and rows[2]["loss"] is None  # step 3 had no finite loss
+    # a skipped step does not advance the schedule (its optimiser state is the step's
+    # before), and the logged lr is the one the last applied update used
+    warm = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, warmup_steps=8))
+    train(fake, warm, run_dir=tmp_path / "warm", dataset=minimal, progress=False)
+    lrs = [r["lr"] for r in read_metrics(tmp_path / "warm") if "lr" in r]
+    sched = learning_rate_schedule(warm.train)
+    assert lrs == pytest.approx([float(sched(i)) for i in (0, 1, 1, 2, 3, 4, 5, 6)])
     assert all(np.all(np.isfinite(p)) for p in _params(one.model))
     rows = evaluate_run(tmp_path / "one", "test", dataset=minimal, print_table=False)
     assert rows[0]["scope"] == "window" and rows[0]["windows"] == 4  # eval_batches x B
@@ -364,3 +371,61 @@ def test_resume_refuses_data_whose_standardiser_changed_and_keeps_the_saved_one(
     # the same data resumes (a float32 round trip of the saved values is not a change)
     resumed = train(fake, CONFIG, run_dir=run, dataset=data, progress=False, resume=True)
     assert resumed.status == "finished"
+
+
+def test_a_failed_resume_leaves_the_run_as_it_was(tmp_path):
+    """A resume whose config cannot restore the checkpoints (another model size) stops with
+    one error and leaves config.json, so the run still loads, evaluates and samples."""
+    data = FakeDataset()
+    run = tmp_path / "run"
+    train(fake, CONFIG, run_dir=run, dataset=data, progress=False)
+    saved = (run / "config.json").read_text()
+    other = dataclasses.replace(CONFIG, model="linear_ar")
+    with pytest.raises(ValueError, match="cannot resume .* with this config"):
+        train(fake, other, run_dir=run, dataset=data, progress=False, resume=True)
+    assert (run / "config.json").read_text() == saved
+    load_run(run, dataset=data)
+
+
+def test_resume_drops_the_checkpoints_of_the_abandoned_future(tmp_path):
+    """After a crash, latest/ can hold a damaged newer step and best/ a step past the
+    resume point (validation runs more often than checkpoints). The resumed run starts
+    from the newest readable step: the steps after it belong to a trajectory it replaces,
+    so they go; otherwise orbax would skip every save not newer than them (silently) and
+    best/ would keep a model the resumed run never trained."""
+    cfg = dataclasses.replace(
+        CONFIG,
+        train=dataclasses.replace(
+            CONFIG.train, steps=9, eval_every=1, checkpoint_every=3, keep_checkpoints=5
+        ),
+    )
+    data = FakeDataset()
+
+    def crash(step, out):
+        if step == 7:  # after step 8: latest holds 3 and 6, best its best of 1..8
+            raise RuntimeError("power cut")
+
+    run = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="power cut"):
+        train(fake, cfg, run_dir=run, dataset=data, progress=False, on_step=crash)
+    ck = Checkpointer(run / "checkpoints")
+    assert ck.steps("latest") == [3, 6]
+    best_before = ck.latest_step("best")
+    ck.close()
+    assert best_before > 6  # the data's fake losses fall: the best is the newest
+    # a damaged newer latest step: resume falls back to 6
+    (run / "checkpoints" / "latest" / "7" / "state").mkdir(parents=True)
+    slower = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, lr=0.01))
+    part = train(fake, slower, run_dir=run, dataset=data, progress=False, resume=True)
+    assert part.status == "finished"
+    ck = Checkpointer(run / "checkpoints")
+    assert 7 not in ck.steps("latest") and ck.latest_step("latest") == 9
+    _, best_meta = ck.restore(
+        {"params": nnx.state(part.model, nnx.Param), "rest": {}}, which="best"
+    )
+    ck.close()
+    # the best checkpoint is the best this (resumed, slower) run validated after step 6
+    assert best_meta["step"] >= 6
+    assert best_meta["val_nll"] == pytest.approx(
+        min(r["val_nll"] for r in read_metrics(run) if "val_nll" in r and r["step"] > 6)
+    )

@@ -248,6 +248,24 @@ class Checkpointer:
         with quiet_orbax():
             return self.managers[which].latest_step()
 
+    def drop_after(self, step: int, which: str = "latest") -> list[int]:
+        """Delete the ``which`` steps newer than ``step`` and return them: a run resumed at
+        ``step`` replaces what came after it (damaged steps the restore skipped, a best
+        validated on the abandoned trajectory), and orbax saves no step older than its
+        newest."""
+        mgr = self.managers[which]
+        with quiet_orbax():
+            newer = sorted(s for s in mgr.all_steps() if s > step)
+            for s in newer:
+                mgr.delete(s)
+        if newer:
+            print(
+                f"removed {which} checkpoint step(s) {newer} in {self.directory / which}: "
+                f"the run continues from step {step}",
+                file=sys.stderr,
+            )
+        return newer
+
     def save(self, step: int, state: dict[str, Any], meta: dict, *, which: str = "latest"):
         """Save ``state`` (dict of pytrees) and JSON ``meta`` at ``step``; refuses NaN/inf.
 
@@ -265,7 +283,7 @@ class Checkpointer:
             with quiet_orbax():
                 if step in mgr.all_steps():
                     mgr.delete(step)
-                mgr.save(
+                saved = mgr.save(
                     step,
                     args=ocp.args.Composite(
                         state=ocp.args.StandardSave(stored), meta=ocp.args.JsonSave(dict(meta))
@@ -287,6 +305,12 @@ class Checkpointer:
                 f"{cause.strerror or cause}; free disk space (or fix the folder's "
                 "permissions) and continue with --resume from the last complete checkpoint"
             ) from None
+        if not saved:  # orbax saves no step older than its newest, and says so with False
+            raise CheckpointWriteError(
+                f"checkpoint step {step} was not written to {self.directory / which}: it "
+                f"holds a newer step ({self.latest_step(which)}); remove the newer steps or "
+                "train into a new --run-name"
+            )
 
     def restore(
         self, templates: dict[str, Any], *, which: str = "latest", step: int | None = None

@@ -47,7 +47,7 @@ from flax import nnx
 
 from motionflows import config as cfg
 from motionflows import distributed, runs
-from motionflows.checkpoints import Checkpointer
+from motionflows.checkpoints import Checkpointer, CheckpointReadError
 from motionflows.compile_cache import cached, jitted_evaluate
 from motionflows.errors import RunError
 from motionflows.evaluation import likelihood
@@ -244,9 +244,10 @@ def train(
         _check_same_standardizer(run_dir, dataset.standardizer)
         _check_same_averaging(run_dir, tc)
     mesh = data_mesh() if mesh is None else mesh
-    if _primary():  # the other processes of a multi-process run write nothing here
-        for sub in ("checkpoints", "samples"):
-            (run_dir / sub).mkdir(parents=True, exist_ok=True)
+
+    def write_run_files() -> None:
+        if not _primary():  # the other processes of a multi-process run write nothing here
+            return
         cfg.save_config(
             run_dir / "config.json",
             experiment=module.NAME,
@@ -256,16 +257,25 @@ def train(
         )
         payload = json.dumps(dataset.standardizer.to_dict(), indent=2) + "\n"
         (run_dir / "standardizer.json").write_text(payload)
+
+    if _primary():
+        for sub in ("checkpoints", "samples"):
+            (run_dir / sub).mkdir(parents=True, exist_ok=True)
+    fitted = use_fit and hasattr(module, "fit")
+    if not resume or fitted:
+        write_run_files()
     keys = run_keys(tc.seed)
     model = module.build(config, key=keys["build"])
     ckpt = Checkpointer(ckdir, keep=tc.keep_checkpoints)
     eval_fn = jitted_evaluate(module)
     base_meta = {"seed": tc.seed, "rng": np.asarray(jax.random.key_data(keys["train"])).tolist()}
     try:
-        if use_fit and hasattr(module, "fit"):
+        if fitted:
             return _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta)
         loop = _Loop(module, config, dataset, run_dir, ckpt, eval_fn, keys, base_meta, mesh=mesh)
         loop.start_from(model, resume=resume)
+        if resume:  # only now: a config that cannot restore the run leaves its files alone
+            write_run_files()
         return loop.run(progress=progress, on_step=on_step)
     finally:
         ckpt.close()
@@ -357,10 +367,22 @@ class _Loop:
             templates = {"params": params, "rest": rest, "opt": self.optimizer.init(params)}
             if tc.ema_decay is not None:  # "params" holds the average; the iterate is apart
                 templates["train_params"] = params
-            state, meta = self.ckpt.restore(templates, which="latest")
+            try:
+                state, meta = self.ckpt.restore(templates, which="latest")
+            except CheckpointReadError:
+                raise
+            except ValueError as err:
+                raise RunError(
+                    f"cannot resume {run_dir} with this config: {err}; resume with the "
+                    "settings it was trained with (drop the --set or --preset that changes "
+                    "the model), or start a new run"
+                ) from None
             params = state["train_params" if tc.ema_decay is not None else "params"]
             rest, opt_state = state["rest"], state["opt"]
             self.start, self.best = int(meta["step"]), meta.get("best_val_nll")
+            if self.ckpt.drop_after(self.start, "best"):  # validated on another trajectory
+                self.best = None  # the next validation saves the best again
+            self.ckpt.drop_after(self.start, "latest")  # damaged steps restore skipped
             skipped = jnp.asarray(meta.get("skipped", 0), jnp.int32)
             self.guard = {**init_guard(), "skipped": skipped}
             if _primary():
@@ -427,7 +449,9 @@ class _Loop:
                 vals = [v for v in (_scalar(o[k]) for o in ok) if isinstance(v, int | float)]
                 row[k] = float(np.mean(vals)) if vals else None
         row.update(
-            lr=float(self.schedule(done - 1)),
+            # the lr of the last applied update: a skipped step keeps the optimiser state of
+            # the step before, its schedule count with it
+            lr=float(self.schedule(max(done - 1 - int(self.guard["skipped"]), 0))),
             steps_per_s=rate,
             frames_per_s=rate * self.frames,
             skipped=int(self.guard["skipped"]),
