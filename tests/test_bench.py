@@ -375,6 +375,34 @@ def test_a_run_trained_on_other_devices_is_not_reused(smoke, tmp_path):
     assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=4) is None
 
 
+def test_a_run_trained_on_other_data_is_not_reused(smoke, tmp_path):
+    """Takes added to a folder leave the config as it was but change the split and the
+    standardiser: a run is reused only when its standardizer.json is the one the data it
+    would train on gives (else the bench scored it in another run's units)."""
+    from motionflows.run import load_standardizer
+
+    root, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke")
+    exp = bench.load_experiment("linear_ar")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    run = _run_dir(root, first["models"]["linear_ar"])
+    old = tmp_path / "runs" / prov["experiment"] / run.name
+    shutil.copytree(run, old)
+    std = load_standardizer(run)
+    find = dict(runs_dir=tmp_path / "runs", experiment=prov["experiment"], config=config)
+    assert bench.find_run(**find, standardizer=lambda: std) == old
+    payload = json.loads((old / "standardizer.json").read_text())
+    payload["pose_mean"] = [v + 0.02 for v in payload["pose_mean"]]
+    (old / "standardizer.json").write_text(json.dumps(payload))
+    assert bench.find_run(**find, standardizer=lambda: std) is None
+    again = bench.run_benchmark(
+        data="synthetic", models="linear_ar", budget="smoke", out=tmp_path / "out",
+        runs_dir=tmp_path / "runs", strict=True, gifs=False, progress=None,
+    )  # fmt: skip
+    entry = again["models"]["linear_ar"]
+    assert not entry["reused"] and Path(entry["run_dir"]) != old
+
+
 def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, capsys):
     _, first = smoke
     data = bench.parse_data_spec("synthetic", "smoke")
@@ -591,3 +619,25 @@ def test_estimate_counts_the_validation_passes_of_the_training(capsys):
     total = e["seconds_per_step"] * 30 + 3 * e["validation_seconds"]
     assert e["projected_hours"] == pytest.approx(total / 3600)
     assert est["total_hours"] == pytest.approx(e["projected_hours"])
+
+
+def test_test_data_sharing_training_takes_is_flagged(monkeypatch):
+    """``--test-data`` holding takes the models trained on (the same folder as --data, say)
+    is scored, but warned about and marked in results.json and the report."""
+    from motionflows.bench import benchmark, report
+    from motionflows.data import takes as takes_module
+
+    data = bench.parse_data_spec("synthetic", "smoke")
+    ds = data.load()
+    train = ds.split("train")
+    monkeypatch.setattr(
+        takes_module,
+        "load_takes",
+        lambda *a, **k: SimpleNamespace(windows=train, label="same", skipped=[]),
+    )
+    with pytest.warns(UserWarning, match="not held out|are training or validation takes"):
+        _, info = benchmark._test_data(ds, data, "bvh:/same", None)
+    assert info["shared_with_training"] == sorted(set(np.asarray(train.take).tolist()))
+    config = {"source": "synthetic", "fps": 20.0, "window": 40, "hop": 10, "split_by": "take"}
+    lines = report._data_section({"test_data": info, "data": {"config": config}})
+    assert any("Not held out" in line for line in lines)

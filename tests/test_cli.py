@@ -256,3 +256,14 @@ def test_every_set_flag_counts_when_set_is_repeated(command):
         assert cli_bench._command(args, ("moglow",)).endswith(
             "--set train.steps=54000 tau=3 train.seed=1"
         )
+
+
+def test_runs_table_best_is_the_lowest_finite_validation():
+    """A NaN validation row (the trainer logs one when a validation blew up) is not the
+    run's best: min() over floats with a NaN first returned the NaN."""
+    from motionflows.runs import best_val
+
+    rows = [{"step": 10, "val_nll": float("nan")}, {"step": 20, "val_nll": -5.0},
+            {"step": 30, "val_nll": -4.0}, {"step": 40, "loss": 1.0}]  # fmt: skip
+    assert best_val(rows) == (-5.0, 20)
+    assert best_val([{"step": 10, "val_nll": float("inf")}]) == (None, None)

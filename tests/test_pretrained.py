@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -98,6 +99,30 @@ def test_a_failed_overwrite_keeps_the_old_export_and_the_run_is_read_once(
     export_run(run_dir, again, overwrite=True)
     assert len(reads) == 1
     assert json.loads((again / "pretrained.json").read_text())["step"] == 3
+    monkeypatch.undo()
+
+    # an export that could not be loaded is refused before anything is written
+    for bad in (float("nan"), -3.0):
+        with pytest.raises(ValueError, match="temperature"):
+            export_run(run_dir, tmp_path / "hot", temperature=bad)
+    no_std = tmp_path / "no_std"
+    shutil.copytree(run_dir, no_std)
+    (no_std / "standardizer.json").unlink()
+    with pytest.raises(RunError, match="standardizer.json is missing"):
+        export_run(no_std, tmp_path / "unloadable")
+    assert not (tmp_path / "hot").exists() and not (tmp_path / "unloadable").exists()
+
+    # a damaged pretrained.json is one error naming the file, not a raw JSON / KeyError
+    damaged = {
+        "{bad": "cannot be read",
+        '{"temperature": "hot"}': "temperature",
+        '{"scope": "elbo"}': "scope 'elbo'",
+        "[1]": "JSON object",
+    }
+    for text, needle in damaged.items():
+        (again / "pretrained.json").write_text(text)
+        with pytest.raises(RunError, match=f"pretrained.json.*{needle}|{needle}.*pretrained"):
+            PretrainedModel.from_run(again)
 
 
 def test_pretrained_model_speaks_data_units(exported):
@@ -119,6 +144,10 @@ def test_pretrained_model_speaks_data_units(exported):
     ll = model.log_prob(ds.test.pose[valid], ds.test.control[valid])
     assert ll.shape == (int(valid.sum()),)
     assert -float(np.mean(ll)) == pytest.approx(window["nats_per_frame_metres"], rel=1e-4)
+    # the window scope needs no history: windows up to tau frames long score too (the
+    # official scope, computed beside it, used to refuse them)
+    short = model.log_prob(pose[:, :3], control[:, :3])
+    assert short.shape == (3,) and np.isfinite(short).all()
     with pytest.raises(ValueError, match="temperature"):
         model.sample(control, temperature=-1.0)
     with pytest.raises(ValueError, match="NaN"):

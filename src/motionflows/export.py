@@ -49,9 +49,13 @@ def export_run(
     export; otherwise a non-empty ``out`` is refused.
     """
     from motionflows import runs
-    from motionflows.run import restore_run
+    from motionflows.models.validation import check_temperature
+    from motionflows.run import load_standardizer, restore_run
 
     run_dir = runs.check_run_dir(run_dir)
+    if temperature is not None:
+        check_temperature(temperature, "export_run")
+    load_standardizer(run_dir)  # an export without a readable one could not be loaded
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise RunError(f"--out {out} is a file; give a folder for the exported run")

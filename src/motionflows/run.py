@@ -64,6 +64,20 @@ def load_standardizer(run_dir: str | Path):
     return Standardizer.from_dict(d)
 
 
+def standardizer_changes(run_dir: str | Path, standardizer) -> list[str]:
+    """The fields of ``standardizer`` (fitted on data loaded now) that differ from the
+    run's ``standardizer.json`` beyond a float32 round trip: not empty when the data
+    changed since the run trained (takes added to or removed from its folder, another
+    source). A missing or damaged file raises ``RunError`` (:func:`load_standardizer`)."""
+    saved = load_standardizer(run_dir).to_dict()
+    now = standardizer.to_dict()
+    return [
+        key
+        for key, value in saved.items()
+        if not np.allclose(np.asarray(now[key], np.float32), value, rtol=1e-5, atol=1e-7)
+    ]
+
+
 def load_run(
     run_dir: str | Path,
     *,

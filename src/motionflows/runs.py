@@ -289,7 +289,12 @@ def append_metrics(run_dir: str | Path, row: dict) -> None:
 
 
 def best_val(rows: list[dict], key: str = "val_nll") -> tuple[float | None, int | None]:
-    vals = [(r[key], r.get("step", 0)) for r in rows if isinstance(r.get(key), int | float)]
+    """(lowest finite ``key``, its step) over metric ``rows``, or (None, None)."""
+    vals = [
+        (r[key], r.get("step", 0))
+        for r in rows
+        if isinstance(r.get(key), int | float) and math.isfinite(r[key])
+    ]
     if not vals:
         return None, None
     return min(vals)

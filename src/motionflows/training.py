@@ -60,7 +60,14 @@ from motionflows.optim import (
     make_train_step,
     noam_schedule,
 )
-from motionflows.run import draw_samples, evaluate_run, load_run, load_standardizer, run_keys
+from motionflows.run import (
+    draw_samples,
+    evaluate_run,
+    load_run,
+    load_standardizer,
+    run_keys,
+    standardizer_changes,
+)
 from motionflows.sharding import check_batch_size, data_mesh, replicate, shard_batch
 from motionflows.windows import split_windows, subset
 
@@ -322,16 +329,9 @@ def _check_same_standardizer(run_dir: Path, standardizer) -> None:
     """RunError if ``run_dir``'s saved ``standardizer.json`` differs from ``standardizer``
     (fitted on the data now loaded): the checkpoints are in the saved one's units, so the
     data changed since the run started (takes added, another ``--data``)."""
-    path = run_dir / "standardizer.json"
-    if not path.is_file():
+    if not (run_dir / "standardizer.json").is_file():
         return
-    saved = load_standardizer(run_dir).to_dict()
-    now = standardizer.to_dict()
-    changed = [
-        key
-        for key, value in saved.items()
-        if not np.allclose(np.asarray(now[key], np.float32), value, rtol=1e-5, atol=1e-7)
-    ]
+    changed = standardizer_changes(run_dir, standardizer)
     if changed:
         raise RunError(
             f"cannot resume {run_dir}: its training data changed since it started (the "

@@ -12,6 +12,7 @@ import json
 import math
 import time
 import traceback
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -332,13 +333,29 @@ def _test_data(dataset, data_cfg: DataConfig, test_data: str | None, progress):
         skeleton=data_cfg.skeleton, root_sigma_s=data_cfg.root_sigma_s,
     )  # fmt: skip
     log(progress, f"test data: {len(takes.windows)} windows of {test_data}")
+    names = sorted(set(np.asarray(takes.windows.take).tolist()))
+    seen = {str(t) for split in ("train", "val") for t in np.asarray(dataset.split(split).take)}
+    shared = [name for name in names if str(name) in seen]
+    note = f"every complete window of the takes of {test_data} (not the test split)"
+    if shared:
+        note += (
+            f"; {len(shared)} of its {len(names)} takes are also training or validation takes "
+            f"of --data (e.g. {', '.join(map(str, shared[:3]))}): not held out"
+        )
+        warnings.warn(
+            f"--test-data {test_data}: {len(shared)} of its {len(names)} takes are training or "
+            f"validation takes of --data (e.g. {', '.join(map(str, shared[:3]))}), so their "
+            "scores are not held out; give takes the models never saw",
+            stacklevel=2,
+        )
     return dataset.with_test(takes.windows, test_data=str(test_data)), {
         "spec": str(test_data),
         "label": takes.label,
-        "takes": sorted(set(np.asarray(takes.windows.take).tolist())),
+        "takes": names,
+        "shared_with_training": shared,
         "skipped": takes.skipped,
         "windows": len(takes.windows),
-        "note": f"every complete window of the takes of {test_data} (not the test split)",
+        "note": note,
     }
 
 

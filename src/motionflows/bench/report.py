@@ -352,6 +352,12 @@ def _data_section(results: dict) -> list[str]:
             + (f"; {len(skipped)} take(s) shorter than one window skipped" if skipped else "")
             + ".\n"
         )
+        shared = test.get("shared_with_training") or []
+        if shared:
+            out.append(
+                f"**Not held out:** {len(shared)} of these takes are also training or validation "
+                f"takes of the models (e.g. {', '.join(map(str, shared[:3]))}).\n"
+            )
     return out
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -50,6 +51,7 @@ def find_run(
     *,
     sampling_fields: tuple[str, ...] = (),
     devices: int | None = None,
+    standardizer: Callable[[], Any] | None = None,
 ) -> Path | None:
     """The newest finished run under ``runs_dir/<experiment>/`` whose saved config equals
     ``config`` (same data, model and training settings) but for ``sampling_fields`` (the
@@ -57,7 +59,10 @@ def find_run(
     how it trains), else None. With ``devices``, only a run trained data-parallel on that
     many devices (its ``config.json``'s ``"devices"``; 1 for a run saved before the count
     was recorded): another count sums each batch in another order, so it is another
-    training, as another seed would be."""
+    training, as another seed would be. With ``standardizer`` (called once, when a run
+    matches the config: the standardiser of the data ``config`` trains on, loaded now),
+    only a run whose ``standardizer.json`` equals it: the same config on a folder whose
+    takes changed is another training set."""
     base = Path(runs_dir) / experiment
     if not base.is_dir():
         return None
@@ -79,6 +84,18 @@ def find_run(
             continue
         if run_finished(path.parent, steps):
             hits.append(path.parent)
+    if standardizer is not None and hits:
+        from motionflows.run import standardizer_changes
+
+        now = standardizer()
+
+        def same_data(run_dir: Path) -> bool:
+            try:
+                return not standardizer_changes(run_dir, now)
+            except RunError:  # no readable standardizer.json: cannot be scored either
+                return False
+
+        hits = [run for run in hits if same_data(run)]
     return max(hits, key=lambda p: p.stat().st_mtime) if hits else None
 
 
@@ -110,6 +127,13 @@ def obtain_run(
     """(run_dir, reused, training seconds): reuse a finished identical run or train one;
     ``training_bars=False`` trains without the progress bar (``progress`` lines stay)."""
     experiment = provenance["experiment"]
+    loaded = {}
+
+    def training_data():
+        if "data" not in loaded:
+            loaded["data"] = config.data.load() if dataset is None else dataset
+        return loaded["data"]
+
     if not retrain:
         import jax
 
@@ -119,6 +143,7 @@ def obtain_run(
             config,
             sampling_fields=sampling_fields_of(exp),
             devices=jax.device_count(),
+            standardizer=lambda: training_data().standardizer,
         )
         if found is not None:
             log(progress, f"{model_name}: reusing finished run {found}")
@@ -131,7 +156,7 @@ def obtain_run(
         f"({config.train.steps} steps) -> {run_dir}",
     )
     t0 = time.perf_counter()
-    dataset = config.data.load() if dataset is None else dataset
+    dataset = training_data()
     log(progress, f"{model_name}: data: {dataset.summary()}")
     bars = progress if training_bars else None
     train_run(exp, config, run_dir, preset=provenance["preset"], progress=bars, dataset=dataset)

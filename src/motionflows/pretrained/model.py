@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from motionflows.data.names import CONTROL_DIM, POSE_DIM
+from motionflows.errors import RunError
 from motionflows.models.validation import check_input, check_temperature
 from motionflows.runs import (
     check_sample_control,
@@ -29,6 +30,31 @@ def _array(x: Any, channels: int, name: str, where: str) -> np.ndarray:
     if len(shape) != 3 or shape[-1] != channels:
         raise ValueError(f"{where}: {name} must be (B, T, {channels}), got {shape}")
     return np.asarray(check_input(x, name, where))
+
+
+def _read_info(path: Path, module) -> dict:
+    """``pretrained.json`` ({} when absent), its temperature and scope checked: a damaged
+    file is one ``RunError`` naming it and the fix."""
+    if not path.is_file():
+        return {}
+    fix = "export the run again (motionflows export RUN --out DIR), or delete the file"
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise RunError(f"{path} cannot be read ({err}); {fix}") from None
+    if not isinstance(info, dict):
+        raise RunError(f"{path} must hold a JSON object; {fix}")
+    if "temperature" in info:
+        try:
+            check_temperature(info["temperature"], str(path))
+        except ValueError as err:
+            raise RunError(f"{err}; {fix}") from None
+    scopes = list(getattr(module, "SCOPES", {}) or {})
+    if info.get("scope") is not None and info["scope"] not in scopes:
+        raise RunError(
+            f"{path}: scope {info['scope']!r} is not one of {module.NAME}'s {scopes}; {fix}"
+        )
+    return info
 
 
 class PretrainedModel:
@@ -62,7 +88,16 @@ class PretrainedModel:
                 module, model, key, control, temperature=temperature
             )
         )
-        self._evaluate = jax.jit(module.evaluate)
+        if self.scope == "window" and hasattr(module, "window_log_prob"):
+            # the window scope alone (MoGlow's evaluate also computes scopes that need more
+            # than tau frames)
+            def evaluate(model, batch, key):
+                del key
+                return {"window": module.window_log_prob(model, batch["pose"], batch["control"])}
+
+            self._evaluate = jax.jit(evaluate)
+        else:
+            self._evaluate = jax.jit(module.evaluate)
 
     @classmethod
     def from_run(cls, run_dir: str | Path, *, checkpoint: str = "best") -> PretrainedModel:
@@ -71,8 +106,7 @@ class PretrainedModel:
 
         run_dir = Path(run_dir)
         module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
-        info_path = run_dir / INFO_FILE
-        info = json.loads(info_path.read_text()) if info_path.is_file() else {}
+        info = _read_info(run_dir / INFO_FILE, module)
         return cls(module, config, model, load_standardizer(run_dir), info=info)
 
     def sample(self, control, *, seed: int = 0, temperature: float | None = None) -> np.ndarray:
