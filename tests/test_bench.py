@@ -557,6 +557,14 @@ def test_bench_cpu_devices_flag_is_in_the_report_command_and_checked(capsys):
 
     args = cli_bench.build_parser().parse_args(["--budget", "smoke", "--cpu-devices", "4"])
     assert cli_bench._command(args, ("moglow",)).endswith("--cpu-devices 4")
+    # the report's command names every option that changes what was scored
+    args = cli_bench.build_parser().parse_args(
+        ["--data", "bandai", "--runs-dir", "elsewhere", "--no-performer-split"]
+    )
+    assert "--runs-dir elsewhere --no-performer-split" in cli_bench._command(args, ("moglow",))
+    args = cli_bench.build_parser().parse_args(["--data", "bandai"])
+    assert "--runs-dir" not in cli_bench._command(args, ("moglow",))
+    assert "performer-split" not in cli_bench._command(args, ("moglow",))
     assert cli_bench.main(["--budget", "smoke", "--cpu-devices", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["motionflows bench: error: --cpu-devices must be at least 1, got 0"]

@@ -150,6 +150,9 @@ def test_pretrained_model_speaks_data_units(exported):
     assert short.shape == (3,) and np.isfinite(short).all()
     with pytest.raises(ValueError, match="temperature"):
         model.sample(control, temperature=-1.0)
+    for seed in (1.7, "a"):  # 1.7 was silently seed 1
+        with pytest.raises(ValueError, match="seed must be an integer"):
+            model.sample(control, seed=seed)
     with pytest.raises(ValueError, match="NaN"):
         model.log_prob(np.full((1, 16, 63), np.nan, np.float32), control[:1])
 

@@ -117,6 +117,10 @@ def _command(args: argparse.Namespace, names: tuple[str, ...]) -> str:
         extra += f" --temperature {args.temperature:g}"
     if args.seed:
         extra += f" --seed {args.seed}"
+    if args.runs_dir != "runs":  # which runs a bench reuses is part of what it scored
+        extra += f" --runs-dir {args.runs_dir}"
+    if args.performer_split is not None:
+        extra += " --performer-split" if args.performer_split else " --no-performer-split"
     if args.overrides:
         extra += " --set " + " ".join(args.overrides)
     if args.foot_lock:

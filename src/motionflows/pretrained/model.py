@@ -123,6 +123,8 @@ class PretrainedModel:
         )
         temp = self.temperature if temperature is None else temperature
         temp = float(check_temperature(temp, where))
+        if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+            raise ValueError(f"{where}: seed must be an integer, got {seed!r}")
         c = np.asarray(self.standardizer.normalize_control(control), np.float32)
         x = self._sample(self.model, jax.random.key(int(seed)), c, np.float32(temp))
         return np.asarray(self.standardizer.denormalize_pose(np.asarray(x)), np.float32)
