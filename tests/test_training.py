@@ -385,6 +385,10 @@ def test_a_failed_resume_leaves_the_run_as_it_was(tmp_path):
         train(fake, other, run_dir=run, dataset=data, progress=False, resume=True)
     assert (run / "config.json").read_text() == saved
     load_run(run, dataset=data)
+    reseeded = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, seed=1))
+    with pytest.raises(ValueError, match="train.seed=0 and cannot resume with 1"):
+        train(fake, reseeded, run_dir=run, dataset=data, progress=False, resume=True)
+    assert (run / "config.json").read_text() == saved
 
 
 def test_resume_drops_the_checkpoints_of_the_abandoned_future(tmp_path):

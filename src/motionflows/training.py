@@ -311,10 +311,16 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
 
 
 def _check_same_averaging(run_dir: Path, tc: cfg.TrainConfig) -> None:
-    """RunError if a resume turns ``train.ema_decay`` on or off: the checkpoints' ``params``
-    are the average in a run with it and the iterate in one without (another decay is
-    fine: the same state)."""
+    """RunError if a resume changes ``train.seed`` (the batches and keys of every step) or
+    turns ``train.ema_decay`` on or off: the checkpoints' ``params`` are the average in a
+    run with it and the iterate in one without (another decay is fine: the same state)."""
     saved = cfg.read_config_json(run_dir / "config.json")["config"].get("train", {})
+    if "seed" in saved and saved["seed"] != tc.seed:
+        raise RunError(
+            f"{run_dir} was trained with train.seed={saved['seed']} and cannot resume with "
+            f"{tc.seed}: the seed picks every batch and random key, so the run would be "
+            "neither seed's; resume without changing train.seed, or start a new run"
+        )
     before = saved.get("ema_decay")
     if (before is None) != (tc.ema_decay is None):
         raise RunError(
