@@ -249,7 +249,7 @@ def train(
     dataset = config.data.load() if dataset is None else dataset
     if resume:
         _check_same_standardizer(run_dir, dataset.standardizer)
-        _check_same_averaging(run_dir, tc)
+        _check_same_training(run_dir, tc)
     mesh = data_mesh() if mesh is None else mesh
 
     def write_run_files() -> None:
@@ -310,7 +310,7 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
     return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
 
 
-def _check_same_averaging(run_dir: Path, tc: cfg.TrainConfig) -> None:
+def _check_same_training(run_dir: Path, tc: cfg.TrainConfig) -> None:
     """RunError if a resume changes ``train.seed`` (the batches and keys of every step) or
     turns ``train.ema_decay`` on or off: the checkpoints' ``params`` are the average in a
     run with it and the iterate in one without (another decay is fine: the same state)."""
