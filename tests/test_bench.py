@@ -15,6 +15,7 @@ import math
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -292,6 +293,19 @@ def _run_dir(root: Path, entry: dict) -> Path:
     return run if run.is_absolute() else root / run
 
 
+def _linear_ar_copy(smoke, tmp_path) -> tuple[Any, dict, Path, Path]:
+    """(config, provenance, run, copy): the smoke bench's linear AR run copied into
+    ``tmp_path/runs`` under its own name, with the config the bench would train."""
+    root, first = smoke
+    data = bench.parse_data_spec("synthetic", "smoke")
+    exp = bench.load_experiment("linear_ar")
+    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
+    run = _run_dir(root, first["models"]["linear_ar"])
+    old = tmp_path / "runs" / prov["experiment"] / run.name
+    shutil.copytree(run, old)
+    return config, prov, run, old
+
+
 def test_a_training_augmentation_set_for_one_model_trains_it_on_its_own_takes(smoke, tmp_path):
     """``--set data.tempo=...``: the model trains on its tempo-augmented takes (its own
     standardiser) and is scored on the bench's frames in its own units."""
@@ -336,13 +350,7 @@ def test_a_share_of_the_training_takes_set_for_one_model_is_scored_on_the_same_f
 def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_path):
     """A field added later (here ``data.tempo``) takes its default for old runs, so the
     bench does not retrain them; a saved value other than the default still differs."""
-    root, first = smoke
-    data = bench.parse_data_spec("synthetic", "smoke")
-    exp = bench.load_experiment("linear_ar")
-    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
-    run = _run_dir(root, first["models"]["linear_ar"])
-    old = tmp_path / "runs" / prov["experiment"] / run.name
-    shutil.copytree(run, old)
+    config, prov, run, old = _linear_ar_copy(smoke, tmp_path)
     payload = json.loads((old / "config.json").read_text())
     del payload["config"]["data"]["tempo"]
     (old / "config.json").write_text(json.dumps(payload))
@@ -356,14 +364,8 @@ def test_a_run_trained_on_other_devices_is_not_reused(smoke, tmp_path):
     """Data-parallel training on N devices sums the batch in another order, so its run is
     another training, not this one: the bench reuses only a run trained on as many devices
     as it has (a run saved before the count was recorded counts as one device)."""
-    root, first = smoke
-    data = bench.parse_data_spec("synthetic", "smoke")
-    exp = bench.load_experiment("linear_ar")
-    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
-    run = _run_dir(root, first["models"]["linear_ar"])
+    config, prov, run, old = _linear_ar_copy(smoke, tmp_path)
     assert json.loads((run / "config.json").read_text())["devices"] == 1  # recorded
-    old = tmp_path / "runs" / prov["experiment"] / run.name
-    shutil.copytree(run, old)
     payload = json.loads((old / "config.json").read_text())
     payload["devices"] = 4
     (old / "config.json").write_text(json.dumps(payload))
@@ -381,13 +383,7 @@ def test_a_run_trained_on_other_data_is_not_reused(smoke, tmp_path):
     would train on gives (else the bench scored it in another run's units)."""
     from motionflows.run import load_standardizer
 
-    root, first = smoke
-    data = bench.parse_data_spec("synthetic", "smoke")
-    exp = bench.load_experiment("linear_ar")
-    config, prov = bench.bench_config("linear_ar", "smoke", data, exp)
-    run = _run_dir(root, first["models"]["linear_ar"])
-    old = tmp_path / "runs" / prov["experiment"] / run.name
-    shutil.copytree(run, old)
+    config, prov, run, old = _linear_ar_copy(smoke, tmp_path)
     std = load_standardizer(run)
     find = dict(runs_dir=tmp_path / "runs", experiment=prov["experiment"], config=config)
     assert bench.find_run(**find, standardizer=lambda: std) == old
