@@ -96,6 +96,25 @@ def experiment_sample(module, model, key, control, **options):
     return module.sample(model, key, control, **options)
 
 
+def window_scope_evaluate(module):
+    """An ``evaluate``-shaped function ``(model, batch, key) -> {"window": (B,)}`` scoring the
+    ``window`` scope alone through the experiment's ``window_log_prob`` (jitted), or None
+    when it has none. For windows its full ``evaluate`` cannot take (MoGlow's ``official``
+    scopes need more than tau frames) and to skip scopes nobody reads."""
+    scorer = getattr(module, "window_log_prob", None)
+    if scorer is None:
+        return None
+    import jax
+
+    jitted = jax.jit(scorer)
+
+    def evaluate(model, batch, key):
+        del key
+        return {"window": jitted(model, batch["pose"], batch["control"])}
+
+    return evaluate
+
+
 def fixed_length(module) -> bool:
     """Whether an experiment samples only its training window (``FIXED_LENGTH = True``)."""
     return bool(getattr(module, "FIXED_LENGTH", False))

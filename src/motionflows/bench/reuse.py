@@ -3,6 +3,7 @@ else train it (through :func:`motionflows.training.train`) under ``runs/<experim
 
 from __future__ import annotations
 
+import functools
 import time
 import warnings
 from collections.abc import Callable
@@ -127,12 +128,10 @@ def obtain_run(
     """(run_dir, reused, training seconds): reuse a finished identical run or train one;
     ``training_bars=False`` trains without the progress bar (``progress`` lines stay)."""
     experiment = provenance["experiment"]
-    loaded = {}
 
-    def training_data():
-        if "data" not in loaded:
-            loaded["data"] = config.data.load() if dataset is None else dataset
-        return loaded["data"]
+    @functools.cache
+    def training_data():  # loaded once, and only when a reuse check or a training needs it
+        return config.data.load() if dataset is None else dataset
 
     if not retrain:
         import jax

@@ -16,6 +16,7 @@ import numpy as np
 
 from motionflows.bench.budgets import EVAL_CHUNK
 from motionflows.errors import RunError
+from motionflows.runs import window_scope_evaluate
 from motionflows.windows import complete_windows, pick, standardized, subset
 
 DIVERGED_METRES = 10.0
@@ -130,14 +131,7 @@ def per_frame_nll(
             }
     if not causal:
         return {"available": False, "method": _unavailable(exp)}
-    scorer = getattr(exp, "window_log_prob", None)
-    if scorer is not None:
-        import jax
-
-        jitted = jax.jit(scorer)
-
-        def evaluate_fn(m, batch, k):
-            return {"window": jitted(m, batch["pose"], batch["control"])}
+    evaluate_fn = window_scope_evaluate(exp) or evaluate_fn
 
     t_len = pose.shape[1]
     ends = sorted(set(np.linspace(0, t_len, points + 1).round().astype(int).tolist()) - {0})

@@ -18,6 +18,7 @@ from motionflows.runs import (
     fixed_length,
     frame_multiple,
     warn_if_control_unseen,
+    window_scope_evaluate,
 )
 
 INFO_FILE = "pretrained.json"
@@ -88,16 +89,8 @@ class PretrainedModel:
                 module, model, key, control, temperature=temperature
             )
         )
-        if self.scope == "window" and hasattr(module, "window_log_prob"):
-            # the window scope alone (MoGlow's evaluate also computes scopes that need more
-            # than tau frames)
-            def evaluate(model, batch, key):
-                del key
-                return {"window": module.window_log_prob(model, batch["pose"], batch["control"])}
-
-            self._evaluate = jax.jit(evaluate)
-        else:
-            self._evaluate = jax.jit(module.evaluate)
+        window = window_scope_evaluate(module) if self.scope == "window" else None
+        self._evaluate = window or jax.jit(module.evaluate)
 
     @classmethod
     def from_run(cls, run_dir: str | Path, *, checkpoint: str = "best") -> PretrainedModel:
