@@ -327,6 +327,13 @@ def test_the_fixed_length_glow_samples_its_window_and_warns_at_other_lengths(tmp
         assert glow.sample(control).shape == (1, glow.window, 63)
     with pytest.warns(UserWarning, match="trained on 80-frame windows"):
         glow.sample(np.zeros((1, glow.window + 4, 3), np.float32))
+    # log_prob too: a likelihood at a length it never saw is not the window's
+    pose = glow.sample(control)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert glow.log_prob(pose, control).shape == (1,)
+    with pytest.warns(UserWarning, match="PretrainedModel.log_prob: .*trained on 80-frame"):
+        glow.log_prob(pose[:, :40], control[:, :40])
     args = ["sample", "pretrained:glow-bandai", "--control", "walk", "--out", str(tmp_path),
             "--no-gif"]  # fmt: skip
     assert cli.main(args) == 0, capsys.readouterr().err

@@ -131,9 +131,9 @@ def warn_if_not_window(module, config, frames: int, where: str, *, stacklevel: i
         fps = float(config.data.fps)
         warnings.warn(
             f"{where}: {module.NAME} is a fixed-length model trained on {window}-frame windows "
-            f"({window / fps:g} s); {int(frames)} frames is outside what it learnt and may not "
-            f"move well. Ask for {window} frames, or use a causal model (moglow) for other "
-            "lengths",
+            f"({window / fps:g} s); {int(frames)} frames is outside what it learnt (its samples "
+            f"may not move well, its likelihoods are not the window's). Use {window} frames, "
+            "or a causal model (moglow) for other lengths",
             UserWarning,
             stacklevel=stacklevel,
         )

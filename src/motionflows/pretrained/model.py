@@ -18,6 +18,7 @@ from motionflows.runs import (
     fixed_length,
     frame_multiple,
     warn_if_control_unseen,
+    warn_if_not_window,
     window_scope_evaluate,
 )
 
@@ -127,12 +128,14 @@ class PretrainedModel:
         controls (B, T, 3), in the scope :attr:`scope` (``"window"``: all T frames; for the
         VAE-LSTM ``"elbo"``, a lower bound). The standardiser's Jacobian is included:
         ``(log p_std + F log|d std / d x|) / F`` over the F scored frames. Warns
-        (``UserWarning``) on a control far outside the training data, as :meth:`sample`."""
+        (``UserWarning``) on a control far outside the training data and, for a fixed-length
+        model, on T other than :attr:`window`, as :meth:`sample`."""
         where = "PretrainedModel.log_prob"
         pose = _array(pose, POSE_DIM, "pose", where)
         control = _array(control, CONTROL_DIM, "control", where)
         if pose.shape[:2] != control.shape[:2]:
             raise ValueError(f"pose {pose.shape} and control {control.shape} must share (B, T)")
+        warn_if_not_window(self.module, self.config, pose.shape[1], where)
         warn_if_control_unseen(self.module, self.config, self.standardizer, control, where)
         batch = {
             "pose": np.asarray(self.standardizer.normalize_pose(pose), np.float32),
