@@ -112,6 +112,24 @@ def test_the_streaming_lock_sees_only_the_past_and_holds_feet_within_its_reach(c
         StreamingFootLock(max_shift=0.0)
 
 
+def test_the_streaming_lock_does_not_jump_when_a_foot_lands_again_inside_its_fade(walk):
+    """A foot lifted for one frame lands while its last stance's shift is still fading out:
+    the new stance must start where the foot is shown, not snap to where it was drawn (it
+    jumped by ~(1 - 1 / (blend + 1)) * max_shift, a 0.95 m/s pop in ``play --foot-lock``)."""
+    frame = _crouch(walk[0][0], 0.08)[5].reshape(21, 3)
+    seq = np.stack([frame + np.array([0.0, 0.0, 0.01 * t]) for t in range(24)])  # 1 cm/frame
+    seq[12, [3, 4], 1] += 0.06  # the left ankle and toe off the floor for one frame
+    lock = StreamingFootLock(fps=FPS, blend=3, max_shift=0.05)
+    held = np.stack([lock.step(w, 0.0) for w in seq])
+    _, _, ankle, toe = LEGS[0]
+    shown = 0.5 * (held[:, ankle, [0, 2]] + held[:, toe, [0, 2]])
+    drawn = 0.5 * (seq[:, ankle, [0, 2]] + seq[:, toe, [0, 2]])
+    steps, raw = np.linalg.norm(np.diff(shown, axis=0), axis=-1), 0.01
+    assert np.abs(shown - drawn).max() > 0.02  # the stance is held: the test is not vacuous
+    # the fade releases at most max_shift / (blend + 1) a frame on top of the foot's own move
+    assert steps.max() <= raw + 0.05 / 4 + 1e-9, steps.round(4)
+
+
 def test_feet_in_the_air_are_left_alone(creeping):
     pose, control = creeping
     lifted = pose + np.tile([0.0, 1.0, 0.0], 21)  # 1 m up: no foot below 5 cm

@@ -36,8 +36,9 @@ beside them, never instead).
 (``MoGlow.stream_step``, ``motionflows play --foot-lock``), seeing only the past: a foot
 stands while its height is less than 1.5 cm above the 5th percentile of both feet's
 heights over the last 2 s (the calibrated rule on a sliding window), a stance's anchor is
-where the foot landed (its first frame: the mean needs the future), so no fade is needed
-before a stance, and the shift of its last frame fades out over ``blend`` frames after it.
+where the foot is shown when it lands (its first frame, plus what is left of the last
+stance's fading shift: the mean needs the future), so no fade is needed before a stance,
+and the shift of its last frame fades out over ``blend`` frames after it.
 A foot that creeps further than ``max_shift`` (5 cm) from its anchor drags the anchor along
 at that distance: without the future a stance cannot share its correction out, and a
 held foot the body has left behind would have to jump when it lifts.
@@ -155,8 +156,9 @@ class StreamingFootLock:
         for side, leg in enumerate(LEGS):
             centre = 0.5 * (world[leg[2], [0, 2]] + world[leg[3], [0, 2]])
             if heights[side] < floor + FLOOR_CONTACT_M:
-                if self._anchor[side] is None:  # the foot lands: hold it here
-                    self._anchor[side] = centre
+                if self._anchor[side] is None:  # the foot lands: hold it where it is shown,
+                    # the last stance's shift still fading (no jump when it lands again soon)
+                    self._anchor[side] = centre + self._faded(side, self._since[side] + 1)
                 shift = self._anchor[side] - centre
                 size = float(np.hypot(*shift))
                 if size > self.max_shift:  # too far to hold: the anchor follows the foot
@@ -167,10 +169,16 @@ class StreamingFootLock:
             else:
                 self._anchor[side] = None
                 self._since[side] += 1
-                shift = self._last[side] * max(0.0, 1.0 - self._since[side] / (self.blend + 1))
+                shift = self._faded(side, self._since[side])
             if np.any(shift):
                 _shift_leg(new, world, leg, shift, np.float64(yaw))
         return new
+
+
+    def _faded(self, side: int, since: int) -> np.ndarray:
+        """The shift of foot ``side`` ``since`` frames after its latest stance frame: that
+        frame's shift faded linearly to 0 over ``blend + 1`` frames."""
+        return self._last[side] * max(0.0, 1.0 - since / (self.blend + 1))
 
 
 def _shift_leg(new: np.ndarray, world: np.ndarray, leg, shift: np.ndarray, yaw) -> None:
