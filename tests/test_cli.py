@@ -106,6 +106,17 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     assert npz["pose"].shape == (2, 20, 63) and npz["control"].shape == (20, 3)
     # poses come back in metres: the (fake) standardiser's mean/std are applied
     assert abs(npz["pose"].mean() - fake_data.standardizer.pose_mean.mean()) < 0.5
+    # another draw under the same name does not replace it (it did, silently); the same
+    # draw again is written over
+    again = ["sample", run, "--control", "walk", "--seed", 3, "--no-gif", "--out", tmp_path / "s"]
+    for seconds in (0.5, 0.5, 1):
+        assert _run(capsys, *again, "--seconds", seconds, "--num", 2)[0] == 0
+    files = sorted(f.name for f in (tmp_path / "s").glob("*.npz"))
+    assert files == ["walk_T1_seed3-2.npz", "walk_T1_seed3.npz"], files
+    assert np.load(tmp_path / "s" / "walk_T1_seed3.npz")["pose"].shape == (2, 20, 63)
+    assert np.load(tmp_path / "s" / "walk_T1_seed3-2.npz")["pose"].shape == (2, 10, 63)
+    code, _, err = _run(capsys, *again, "--seed", 2**70)
+    assert code == 2 and "--seed must be a 64-bit integer" in err
 
     code, out, _ = _run(capsys, "runs", "--root", runs)
     assert code == 0 and "cli_fake" in out and " r " in out
@@ -224,6 +235,35 @@ def test_render_npz_and_demo_with_the_baseline(tmp_path, capsys, fake_data):
     (run,) = (tmp_path / "runs" / "baselines").iterdir()
     assert (run / "samples" / "demo_walk-turn-run.gif").is_file()
     assert np.load(run / "samples" / "demo_walk-turn-run.npz")["pose"].shape == (10, 63)
+    (tmp_path / "a_file").write_text("")
+    assert demo.main(["--no-train", "--runs-dir", str(tmp_path / "a_file")]) == 2
+    assert "is a file: give a folder" in capsys.readouterr().err  # was a traceback
+
+
+def test_render_refuses_what_it_cannot_draw_right(tmp_path, capsys, fake_data):
+    """Bad .npz files, frame rates and folders: one line and exit 2, never a traceback and
+    never a GIF at the wrong speed (a --fps the file's own rate overrode silently)."""
+    pose = np.tile(fake_data.standardizer.pose_mean, (3, 1))
+    control = np.full((3, 3), 0.05, np.float32)
+    np.savez(tmp_path / "at30.npz", pose=pose, control=control, fps=30.0)
+    np.savez(tmp_path / "fps2.npz", pose=pose, control=control, fps=np.array([20.0, 30.0]))
+    np.savez(tmp_path / "complex.npz", pose=pose.astype(np.complex64), control=control)
+    np.savez(tmp_path / "nofps.npz", pose=pose, control=control)
+    (tmp_path / "text.npz").write_text("not an archive")
+    (tmp_path / "folder").mkdir()
+    out = ["--out", tmp_path / "r"]
+    cases = [
+        (["at30.npz", "--fps", "10"], "made at 30 fps"),
+        (["fps2.npz"], "'fps' must be one number"),
+        (["complex.npz"], "finite real numbers"),
+        (["text.npz"], "not an .npz archive"),
+        (["nofps.npz", "--fps", "1e-9"], "--fps must be in [1, 1000]"),
+        (["folder"], "is a folder but not a run"),
+    ]
+    for argv, needle in cases:
+        code, _, err = _run(capsys, "render", tmp_path / argv[0], *argv[1:], *out)
+        assert code == 2 and needle in err and "Traceback" not in err, (argv, err)
+    assert _run(capsys, "render", tmp_path / "at30.npz", "--fps", "30", *out)[0] == 0
 
 
 @pytest.mark.parametrize(

@@ -53,6 +53,40 @@ def test_animate_writes_gif_with_expected_frames(clip, tmp_path):
         assert im.info["duration"] == 50
 
 
+def test_a_gif_lasts_as_long_as_its_motion_at_any_frame_rate(clip, tmp_path):
+    """GIF delays are whole centiseconds: at 30 fps a constant round(1000 / 30) ms delay was
+    stored as 30 ms, a clip 10 % too fast. The delays now add up to T / fps."""
+    for fps in (24.0, 30.0, 50.0, 20.0):
+        assert abs(sum(render.gif_durations(97, fps)) - 1000 * 97 / fps) <= 5
+    pose30, ctrl30 = np.repeat(clip.pose[:5], 3, axis=0), np.repeat(clip.control[:5], 3, 0) / 3
+    out = animate(pose30[:14], ctrl30[:14], tmp_path / "c.gif", fps=30.0, dpi=20)
+    with Image.open(out) as im:
+        delays = []
+        for k in range(im.n_frames):
+            im.seek(k)
+            delays.append(im.info["duration"])
+    assert len(delays) == 7 and abs(sum(delays) - 1000 * 14 / 30) <= 5, delays
+
+
+def test_animate_keeps_palette_indices_not_every_rgb_frame(clip, tmp_path):
+    """A long clip's GIF must not hold every drawn RGB frame in memory at once (it did:
+    ~1.5 MB a frame, an out-of-memory kill for a long sample), and a clip longer than
+    ``max_seconds`` is cut, with a warning."""
+    import tracemalloc
+
+    pose, control = np.tile(clip.pose, (8, 1)), np.tile(clip.control, (8, 1))  # 96 frames
+    animate(clip.pose, clip.control, tmp_path / "warm.gif", dpi=20)  # matplotlib's own setup
+    tracemalloc.start()
+    animate(pose, control, tmp_path / "long.gif", dpi=20)
+    peak = tracemalloc.get_traced_memory()[1] / (128 * 96 * 3)  # in RGB frames at dpi 20
+    tracemalloc.stop()
+    assert peak < 80, peak  # ~40 (the palette's frames and the figure), ~138 before
+    with pytest.warns(UserWarning, match=r"first 1 s of 4\.8 s"):
+        cut = animate(pose, control, tmp_path / "cut.gif", dpi=20, max_seconds=1.0)
+    with Image.open(cut) as im:
+        assert im.n_frames == 20
+
+
 def test_render_clip_and_plots(clip, tmp_path):
     files = render_clip(clip, tmp_path)
     assert files["gif"].exists() and files["controls"].exists() and files["still"].exists()

@@ -137,18 +137,32 @@ def _sample_controls(
     return [(path.stem, load_control(text, seconds, fps), None)]
 
 
-def _sample_stem(out: Path, stem: str, run_dir: Path) -> str:
-    """``stem``, unless ``out`` already holds that sample from another run (a shared
-    ``--out`` for several models): then ``<run name>_<stem>``, so nothing saved is lost."""
-    existing = out / f"{stem}.npz"
-    if not existing.is_file():
-        return stem
-    try:
-        with np.load(existing) as old:
-            same = str(old["run_dir"]) == str(run_dir)
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: keep it too
-        same = False
-    return stem if same else f"{run_dir.name}_{stem}"
+def _sample_stem(out: Path, stem: str, run_dir: Path, pose: np.ndarray) -> str:
+    """The file stem for ``pose`` in ``out``: ``stem``, unless ``out`` holds other samples
+    under it, so nothing saved is replaced by something else. Another run's (a shared
+    ``--out`` for several models) gives ``<run name>_<stem>``; another draw of this run
+    (other ``--seconds``, ``--num``, controls or checkpoint) ``<stem>-2``, ``-3``, ...; the
+    same poses again (same run, same draw) are written over."""
+
+    def saved(name: str) -> tuple[str, np.ndarray] | None:  # (run_dir, pose); None: no file
+        existing = out / f"{name}.npz"
+        if not existing.is_file():
+            return None
+        try:
+            with np.load(existing) as old:
+                return str(old["run_dir"]), np.asarray(old["pose"])
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile):  # unreadable: keep it
+            return "", np.empty(0)
+
+    first = saved(stem)
+    base = stem if first is None or first[0] == str(run_dir) else f"{run_dir.name}_{stem}"
+    name, k = base, 1
+    while (old := saved(name)) is not None and not (
+        old[0] == str(run_dir) and np.array_equal(old[1], pose)
+    ):
+        k += 1
+        name = f"{base}-{k}"
+    return name
 
 
 def cmd_sample(args) -> int:
@@ -163,6 +177,8 @@ def cmd_sample(args) -> int:
             f"--num must be 1 .. {MAX_SAMPLES} and --seconds in (0, {MAX_SAMPLE_SECONDS:g}] "
             f"(got --num {args.num}, --seconds {args.seconds})"
         )
+    if not -(2**63) <= args.seed < 2**63:
+        raise RunError(f"--seed must be a 64-bit integer (|seed| < 2**63), got {args.seed}")
     module, config, model, _ = run.load_run(run_dir, checkpoint=args.checkpoint, load_data=False)
     std = run.load_standardizer(run_dir)
     fps = float(config.data.fps)
@@ -192,7 +208,7 @@ def cmd_sample(args) -> int:
         if args.foot_lock:  # the samples as drawn stay in the npz beside the locked ones
             extra["pose_drawn"] = pose
             pose = _foot_lock(pose, control)
-        stem = _sample_stem(out, f"{name}_T{temperature:g}_seed{args.seed}{lock}", run_dir)
+        stem = _sample_stem(out, f"{name}_T{temperature:g}_seed{args.seed}{lock}", run_dir, pose)
         npz = out / f"{stem}.npz"
         np.savez(
             npz,
@@ -269,8 +285,15 @@ def cmd_render(args) -> int:
     if str(args.path).startswith("pretrained:") or (Path(args.path) / "config.json").is_file():
         return _render_run(args)
     path = Path(args.path)
+    if path.is_dir():
+        raise RunError(
+            f"{path} is a folder but not a run (no config.json): give a run directory, "
+            "pretrained:NAME, a .bvh file or an .npz with pose and control"
+        )
     if not path.is_file():
         raise RunError(f"{path} not found (give a .bvh file or an .npz with pose and control)")
+    if args.fps is not None and not (np.isfinite(args.fps) and 1 <= args.fps <= 1000):
+        raise RunError(f"--fps must be in [1, 1000] frames per second, got {args.fps:g}")
     out = _folder(args.out, "--out")
     if path.suffix.lower() == ".bvh":
         from motionflows.data import clip_from_bvh
@@ -280,20 +303,14 @@ def cmd_render(args) -> int:
                 "--foot-lock holds the feet of sampled motion (a run, pretrained:NAME or an "
                 f".npz); {path.name} is a take: render it without --foot-lock"
             )
-        clip = clip_from_bvh(path, fps=args.fps, skeleton=args.skeleton)
+        clip = clip_from_bvh(path, fps=args.fps or 20.0, skeleton=args.skeleton)
         files = render.render_clip(clip, out)
         for f in files.values():
             print(f"wrote {f}", file=sys.stderr)
         return 0
     if path.suffix.lower() != ".npz":
         raise RunError(f"{path}: render reads .bvh or .npz files")
-    with np.load(path, allow_pickle=False) as data:
-        if "pose" not in data or "control" not in data:
-            raise RunError(
-                f"{path} must hold arrays 'pose' (T, 63) or (N, T, 63) metres and 'control' (T, 3)"
-            )
-        pose, control = np.asarray(data["pose"]), np.asarray(data["control"])
-        fps = float(data["fps"]) if "fps" in data else args.fps
+    pose, control, fps = _read_motion_npz(path, args.fps)
     poses = pose[None] if pose.ndim == 2 else pose
     if (
         poses.ndim != 3
@@ -308,10 +325,12 @@ def cmd_render(args) -> int:
             f"(N, T, 3) with the same T >= 1; got pose {pose.shape}, control {control.shape}"
         )
     for name, arr in (("pose", poses), ("control", control)):
-        if not np.issubdtype(arr.dtype, np.number) or not np.all(np.isfinite(arr)):
-            raise RunError(f"{path}: '{name}' must hold finite numbers (it has NaN, inf or text)")
-    if not (np.isfinite(fps) and 0 < fps <= 1000):
-        raise RunError(f"{path}: fps must be in (0, 1000], got {fps:g}")
+        real = np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)
+        if not real or not np.all(np.isfinite(arr)):
+            raise RunError(
+                f"{path}: '{name}' must hold finite real numbers (it has NaN, inf, complex "
+                "numbers or text)"
+            )
     controls = (
         control if control.ndim == 3 else np.broadcast_to(control, (len(poses), *control.shape))
     )
@@ -324,6 +343,39 @@ def cmd_render(args) -> int:
     png = render.plot_controls(controls[0], out / f"{path.stem}_control.png", fps, title=path.stem)
     print(f"wrote {png}", file=sys.stderr)
     return 0
+
+
+def _read_motion_npz(path: Path, fps_flag: float | None) -> tuple[np.ndarray, np.ndarray, float]:
+    """``pose``, ``control`` and the frame rate of an .npz for ``render``: its own 0-d
+    ``fps`` array, else ``--fps`` (default 20); a ``--fps`` that disagrees with the file's is
+    refused (the file says at what rate its frames were made)."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, zipfile.BadZipFile):
+        raise RunError(
+            f"{path} is not an .npz archive (np.savez with arrays pose and control)"
+        ) from None
+    with data:
+        if "pose" not in data or "control" not in data:
+            raise RunError(
+                f"{path} must hold arrays 'pose' (T, 63) or (N, T, 63) metres and 'control' (T, 3)"
+            )
+        pose, control = np.asarray(data["pose"]), np.asarray(data["control"])
+        saved = np.asarray(data["fps"]) if "fps" in data else None
+    if saved is None:
+        fps = 20.0 if fps_flag is None else float(fps_flag)
+    else:
+        if saved.shape != () or not np.issubdtype(saved.dtype, np.number):
+            raise RunError(f"{path}: 'fps' must be one number, got an array {saved.shape}")
+        fps = float(saved)
+        if fps_flag is not None and fps_flag != fps:
+            raise RunError(
+                f"{path} was made at {fps:g} fps (its 'fps' array); --fps {fps_flag:g} "
+                "disagrees: drop --fps"
+            )
+    if not (np.isfinite(fps) and 1 <= fps <= 1000):
+        raise RunError(f"{path}: fps must be in [1, 1000], got {fps:g}")
+    return pose, control, fps
 
 
 def cmd_export(args) -> int:
@@ -477,7 +529,13 @@ def _add_render(sub) -> None:
     )
     p.add_argument("path")
     p.add_argument("--out", default="renders", help="output folder")
-    p.add_argument("--fps", type=float, default=20.0)
+    p.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help="frame rate: a BVH file is resampled to it, an .npz without an 'fps' array is "
+        "drawn at it (default 20; an .npz's own 'fps' is used, and a different --fps refused)",
+    )
     p.add_argument("--skeleton", default="bandai", help="skeleton mapping of a BVH file")
     _add_foot_lock(p)
     p.set_defaults(func=cmd_render)

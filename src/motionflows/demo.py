@@ -132,12 +132,15 @@ def main(argv: list[str] | None = None) -> int:
     from motionflows.errors import MotionflowsError
 
     t0 = time.perf_counter()
+    if Path(args.runs_dir).exists() and not Path(args.runs_dir).is_dir():
+        print(f"demo: --runs-dir {args.runs_dir} is a file: give a folder", file=sys.stderr)
+        return 2
     try:
         if args.pretrained:
             out = Path(args.runs_dir) / "demo"
             pretrained_demo(args.control, args.seconds, out, gif=args.gif)
         code = train_demo(args) if args.train else 0
-    except (MotionflowsError, ValueError) as err:
+    except (MotionflowsError, ValueError, OSError) as err:  # OSError: a folder not writable
         print(f"demo: {err}", file=sys.stderr)
         return 2
     print(f"\n== done in {(time.perf_counter() - t0) / 60:.1f} min", file=sys.stderr)

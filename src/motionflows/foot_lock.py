@@ -174,7 +174,6 @@ class StreamingFootLock:
                 _shift_leg(new, world, leg, shift, np.float64(yaw))
         return new
 
-
     def _faded(self, side: int, since: int) -> np.ndarray:
         """The shift of foot ``side`` ``since`` frames after its latest stance frame: that
         frame's shift faded linearly to 0 over ``blend + 1`` frames."""

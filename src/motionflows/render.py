@@ -29,6 +29,7 @@ blue, right-side red, spine black.
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -53,6 +54,10 @@ _VIEW_HEIGHT = 1.5  # m
 _ELEVATION = 22.0  # degrees above the floor
 _ZOOM = 2.1  # mplot3d box zoom: the character fills about 3/4 of the picture's height
 _PANEL_INCHES = (6.4, 4.8)  # one panel; 640 x 480 px at dpi 100 (two: 512 px wide each)
+MAX_GIF_SECONDS = 120.0
+""":func:`animate` draws at most this many seconds of motion (the first ones, with a
+warning): a GIF's frames are held in memory until it is written (~0.6 MB a frame at 20 fps,
+~1.5 GB for 2 minutes) and drawn at ~40 frames/s."""
 
 
 def _check(pose, control, what="pose") -> tuple[np.ndarray, np.ndarray]:
@@ -254,6 +259,7 @@ def animate(
     dpi: int = 100,
     labels: tuple[str, str] | None = None,
     still: str | os.PathLike | None = None,
+    max_seconds: float | None = MAX_GIF_SECONDS,
 ) -> Path:
     """Write a GIF of pose (T, 63) metres walking the path of control (T, 3) in the world.
 
@@ -263,29 +269,57 @@ def animate(
     truth beside a sample; ``labels`` names the two panels (default "sample", "ground
     truth"). Frames are subsampled to at most ``max_fps``. ``still``: also write the middle
     frame there at dpi 200 (PNG, or PDF/SVG by suffix), as :func:`render_still` does.
+    ``max_seconds``: draw only the first this many seconds, with a ``UserWarning`` (None:
+    all; :data:`MAX_GIF_SECONDS` by default, see there). Each frame lasts 1 / fps (the GIF's
+    whole centiseconds spread by :func:`gif_durations`).
     """
     from PIL import Image
 
     stage, n = _stage(pose, control, compare, title, labels, dpi, fps)
     step = max(1, int(np.ceil(fps / max_fps)))
-    rgb = [stage.frame(t, fps) for t in range(0, n, step)]
-    # one palette from a few frames, then nearest-colour mapping: 10x faster than an
-    # adaptive palette per frame, and a global palette keeps the file smaller
-    palette = Image.fromarray(np.concatenate(rgb[:: max(1, len(rgb) // 8)])).quantize(64)
-    frames = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in rgb]
+    if max_seconds is not None and n > max_seconds * fps:
+        warnings.warn(
+            f"{Path(path).name} shows the first {max_seconds:g} s of {n / fps:g} s (GIF frames "
+            "are held in memory until written); cut the motion into parts, or pass "
+            "max_seconds=None to render.animate for all of it",
+            UserWarning,
+            stacklevel=2,
+        )
+        n = max(1, int(max_seconds * fps))
+    times = range(0, n, step)
+    # one palette from a few frames (drawn first), then nearest-colour mapping: 10x faster
+    # than an adaptive palette per frame, a smaller file, and each frame is kept only as its
+    # palette indices (1 byte a pixel, not 3 bytes of RGB)
+    sampled = {t: stage.frame(t, fps) for t in times[:: max(1, len(times) // 8)]}
+    palette = Image.fromarray(np.concatenate(list(sampled.values()))).quantize(64)
+    frames = [
+        Image.fromarray(sampled.pop(t) if t in sampled else stage.frame(t, fps)).quantize(
+            palette=palette, dither=Image.Dither.NONE
+        )
+        for t in times
+    ]
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(
         out,
         save_all=True,
         append_images=frames[1:],
-        duration=int(round(1000 * step / fps)),
+        duration=gif_durations(len(frames), fps / step),
         loop=0,
         optimize=True,
     )
     if still is not None:
         _save_still(stage, n // 2, fps, still, dpi=200)
     return out
+
+
+def gif_durations(frames: int, fps: float) -> list[int]:
+    """Per-frame GIF delays (ms) for ``frames`` frames at ``fps``: GIF stores whole
+    centiseconds, so frame k lasts round(100 (k + 1) / fps) - round(100 k / fps) cs and the
+    clip lasts frames / fps to within 5 ms (30 fps: 30, 40, 30 ms ... not 30 ms each, 10 %
+    fast). At 20 fps every frame is 50 ms."""
+    edges = np.round(100.0 * np.arange(frames + 1) / fps).astype(np.int64)
+    return [int(10 * d) for d in np.diff(edges)]
 
 
 def _save_still(stage: _Stage, t: int, fps: float, path, dpi: int) -> Path:

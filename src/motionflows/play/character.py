@@ -181,10 +181,10 @@ class Character:
         return frame
 
     def recording(self) -> dict[str, np.ndarray]:
-        """The frames since the last reset: ``pose`` (T, 63) root-frame metres and
-        ``control`` (T, 3) m/frame, rad/frame (what ``motionflows render`` reads), ``fps``;
-        under ``foot_lock`` ``pose`` is the shown (locked) one and ``pose_drawn`` the
-        model's."""
+        """The frames since the last reset, at most the last :data:`MAX_RECORD_FRAMES`:
+        ``pose`` (T, 63) root-frame metres and ``control`` (T, 3) m/frame, rad/frame (what
+        ``motionflows render`` reads), ``fps``; under ``foot_lock`` ``pose`` is the shown
+        (locked) one and ``pose_drawn`` the model's."""
         with self._lock:
             pose = np.asarray(self._poses, np.float32).reshape(-1, POSE_DIM)
             drawn = np.asarray(self._drawn, np.float32).reshape(-1, POSE_DIM)

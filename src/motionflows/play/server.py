@@ -2,8 +2,9 @@
 
 Routes: ``/`` the page (``static/index.html``), ``/static/*`` its script and style,
 ``/ws`` the socket (``motionflows.play.protocol``), ``/record.npz`` the motion since the
-last reset (``pose`` (T, 63) root-frame metres, ``control`` (T, 3) m/frame and rad/frame,
-``fps``: what ``motionflows render`` reads), ``/status`` a small JSON health report.
+last reset, at most its last 20 minutes (``pose`` (T, 63) root-frame metres, ``control``
+(T, 3) m/frame and rad/frame, ``fps``: what ``motionflows render`` reads), ``/status`` a
+small JSON health report.
 
 One page at a time: the first socket owns the character; a second one gets a ``busy``
 message ("another page is steering ...") and is closed with code 4409, and the page says
