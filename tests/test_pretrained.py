@@ -60,6 +60,28 @@ def test_export_holds_no_optimiser_state_and_loads_like_the_run(exported):
         export_run(run_dir, out)
 
 
+def test_export_overwrite_replaces_only_an_export(exported, tmp_path):
+    """``--overwrite`` replaced any non-empty folder: ``--out`` at the runs' folder deleted
+    the run being exported and its siblings, ``--out RUN/checkpoints`` its checkpoints."""
+    import shutil
+
+    run_dir, out = exported
+    runs_copy = tmp_path / "runs"
+    shutil.copytree(run_dir, runs_copy / "tiny")
+    (runs_copy / "sibling").mkdir()
+    (runs_copy / "sibling" / "config.json").write_text("{}")
+    for target, needle in [
+        (runs_copy, "holds the run"),
+        (runs_copy / "tiny" / "checkpoints", "inside the run"),
+        (runs_copy / "sibling", "not an export"),
+    ]:
+        with pytest.raises(RunError, match=needle):
+            export_run(runs_copy / "tiny", target, overwrite=True)
+    assert (runs_copy / "sibling" / "config.json").is_file()
+    assert (runs_copy / "tiny" / "checkpoints" / "best").is_dir()
+    export_run(run_dir, out, temperature=0.7, overwrite=True)  # an export: replaced
+
+
 def test_export_names_its_run_without_the_machines_paths(exported):
     """A shipped export names the run it came from as experiment/run-name: the absolute path
     of the machine that exported it is neither portable nor the user's business."""

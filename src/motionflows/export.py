@@ -46,7 +46,8 @@ def export_run(
 
     ``temperature``: the sampling temperature validated for this model (stored in
     ``pretrained.json``; default 1.0 when loading). ``overwrite`` replaces an existing
-    export; otherwise a non-empty ``out`` is refused.
+    export (a folder with ``pretrained.json``); any other non-empty ``out``, the run itself,
+    a folder holding it or one inside it is refused.
     """
     from motionflows import runs
     from motionflows.models.validation import check_temperature
@@ -59,10 +60,19 @@ def export_run(
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise RunError(f"--out {out} is a file; give a folder for the exported run")
-    if out.resolve() == run_dir.resolve():
-        raise RunError("--out must differ from the run directory")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise RunError(f"--out {out} is not empty; choose a new folder (or pass --overwrite)")
+    target, source = out.resolve(), run_dir.resolve()
+    if target == source or target in source.parents:
+        raise RunError(f"--out {out} holds the run {run_dir}; choose a folder outside it")
+    if source in target.parents:
+        raise RunError(f"--out {out} is inside the run {run_dir}; choose a folder outside it")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise RunError(f"--out {out} is not empty; choose a new folder (or pass --overwrite)")
+        if not (out / "pretrained.json").is_file():
+            raise RunError(
+                f"--out {out} is not an export (no pretrained.json): --overwrite replaces only "
+                "an earlier export; choose a new or empty folder"
+            )
     module, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
     _, params, rest = nnx.split(model, nnx.Param, ...)
     which, meta = saved["which"], saved["meta"]
