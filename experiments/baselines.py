@@ -14,7 +14,7 @@ import sys
 import jax
 import jax.numpy as jnp
 
-from motionflows.config import SMOKE_DATA, DataConfig, Scope, TrainConfig
+from motionflows.config import INF, SMOKE_DATA, DataConfig, Scope, TrainConfig, check_fields
 from motionflows.deprecation import key_first
 from motionflows.models.baselines import (
     DiagonalGaussian,
@@ -38,6 +38,31 @@ class Config:
     ridge: float = 1e-4  # ridge on the AR weights (standardised features)
     fit_scope: str = "window"  # AR fit objective: "window" (zero history) or "official"
     fit_windows: int | None = None  # at most this many training windows in the fit
+
+    def __post_init__(self):
+        for name, allowed in CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ValueError(
+                    f"{name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}"
+                )
+        check_fields(self, MODEL_LIMITS)
+        if self.tau >= self.data.window:
+            raise ValueError(
+                f"tau must be less than data.window (the official scope scores frames "
+                f"tau..T-1), got tau={self.tau}, window={self.data.window}"
+            )
+
+
+CHOICES = {
+    "model": ("gaussian", "linear_ar"),
+    "covariance": ("full", "diag"),
+    "fit_scope": ("window", "official"),
+}
+MODEL_LIMITS = {  # as check_fields reads them: (lowest, highest, lowest ok?, highest ok?)
+    "tau": (1, INF, True, True),
+    "ridge": (0.0, 1e6, True, True),
+    "fit_windows": (1, INF, True, True),
+}
 
 
 PRESETS: dict[str, Config] = {

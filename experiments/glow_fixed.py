@@ -76,6 +76,8 @@ class Config:
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
         check_compute_dtype(self.compute_dtype)
+        if not (math.isfinite(self.coupling_eps) and 0.0 <= self.coupling_eps < 1.0):
+            raise ValueError(f"coupling_eps must be in [0, 1), got {self.coupling_eps}")
         if not 0.0 < self.residual_decay <= 1.0:
             raise ValueError(f"residual_decay must be in (0, 1], got {self.residual_decay}")
         if self.residual_decay != 1.0 and not self.residual:

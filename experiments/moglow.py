@@ -25,11 +25,13 @@ import jax.numpy as jnp
 
 from motionflows.bijectors import initialize_from_data
 from motionflows.config import (
+    INF,
     SMOKE_DATA,
     DataConfig,
     Scope,
     TrainConfig,
     check_compute_dtype,
+    check_fields,
     matmul_dtype,
     smoke_train,
 )
@@ -111,11 +113,19 @@ class Config:
                 f"own_history_target must be one of {', '.join(OWN_HISTORY_TARGETS)}, "
                 f"got {self.own_history_target!r}"
             )
+        check_fields(self, MODEL_LIMITS)
         check_compute_dtype(self.compute_dtype)
         if self.conditioner not in ("lstm", "ff"):
             raise ValueError(f"conditioner must be 'lstm' or 'ff', got {self.conditioner!r}")
         if self.base not in ("normal", "studentt"):
             raise ValueError(f"base must be 'normal' or 'studentt', got {self.base!r}")
+
+
+MODEL_LIMITS = {  # as cfg.check_fields reads them: (lowest, highest, lowest ok?, highest ok?)
+    "df": (0.0, 1e6, False, True),
+    "history_noise": (0.0, 1e3, True, True),
+    "cond_embedding": (0, INF, True, True),
+}
 
 
 PRESETS: dict[str, Config] = {

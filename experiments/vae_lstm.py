@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from motionflows.config import DataConfig, Scope, TrainConfig
+from motionflows.config import INF, DataConfig, Scope, TrainConfig, check_fields
 from motionflows.data.features import HOLDEN_ROOT_SIGMA_S
 from motionflows.deprecation import key_first
 from motionflows.models.vae_lstm import PRIORS, SAMPLERS, VAELSTM, l1_penalty
@@ -85,10 +85,32 @@ class Config:
             raise ValueError(f"prior must be one of {PRIORS}, got {self.prior!r}")
         if self.kernel is not None and (self.kernel < 1 or self.kernel % 2 == 0):
             raise ValueError(f"kernel must be a positive odd integer or None, got {self.kernel}")
+        check_fields(self, MODEL_LIMITS)
 
     @property
     def resolved_kernel(self) -> int:
         return self.kernel if self.kernel is not None else kernel_for_fps(self.data.fps)
+
+
+_WIDTH = (1, INF, True, True)
+MODEL_LIMITS = {  # as cfg.check_fields reads them: (lowest, highest, lowest ok?, highest ok?)
+    **dict.fromkeys(
+        (
+            "latent_dim",
+            "control_hidden",
+            "control_features",
+            "pose_hidden",
+            "pose_features",
+            "decoder_hidden",
+            "prior_hidden",
+            "iwae_chunk",
+            "elbo_samples",
+        ),
+        _WIDTH,
+    ),  # fmt: skip
+    "dropout": (0.0, 1.0, True, False),
+    "l1_weight": (0.0, 1e6, True, True),
+}
 
 
 PRESETS: dict[str, Config] = {

@@ -153,6 +153,35 @@ def test_overrides_are_checked_together_not_one_at_a_time():
     assert c.train.lr == 0.25 and c.data.mirror is False  # the last --set of a key wins
 
 
+@pytest.mark.parametrize(
+    "experiment, item, needle",
+    [
+        ("moglow", "df=nan", "df must be"),
+        ("moglow", "history_noise=inf", "history_noise must be"),
+        ("moglow", "cond_embedding=-1", "cond_embedding must be"),
+        ("vae_lstm", "elbo_samples=0", "elbo_samples must be"),
+        ("vae_lstm", "l1_weight=-1", "l1_weight must be"),
+        ("vae_lstm", "iwae_chunk=0", "iwae_chunk must be"),
+        ("vae_lstm", "latent_dim=0", "latent_dim must be"),
+        ("vae_lstm", "dropout=1.0", "dropout must be"),
+        ("glow_fixed", "coupling_eps=nan", "coupling_eps must be"),
+        ("baselines", "ridge=nan", "ridge must be"),
+        ("baselines", "tau=100", "tau must be less than data.window"),
+        ("baselines", "fit_windows=0", "fit_windows must be"),
+        ("baselines", "model=foo", "model must be one of"),
+        ("baselines", "covariance=foo", "covariance must be one of"),
+        ("baselines", "train.seed=100000000000000000000000", "train.seed must be"),
+    ],
+)
+def test_model_fields_that_cannot_train_are_refused_by_the_config(experiment, item, needle):
+    """Each of these was accepted and then trained NaN steps, crashed at the first
+    validation (after config.json was written), fitted one batch, or raised a raw
+    traceback: the config refuses it before anything runs."""
+    preset = _module(experiment).PRESETS["quick"]
+    with pytest.raises(ValueError, match=needle):
+        apply_overrides(preset, [item])
+
+
 def test_data_short_pads_or_drops_takes_shorter_than_the_window():
     """``data.short`` reaches the data layer: 1.5 s synthetic takes in 2 s windows are padded
     (frozen tails, ``valid`` False there) or dropped (then there is nothing to train on)."""

@@ -391,6 +391,28 @@ def test_a_failed_resume_leaves_the_run_as_it_was(tmp_path):
     assert (run / "config.json").read_text() == saved
 
 
+def test_a_failed_refit_leaves_the_fitted_run_as_it_was(tmp_path, monkeypatch):
+    """A closed-form run refits on --resume; a refit that fails (here the fit raises) must
+    leave config.json and standardizer.json as they were (they were written before the
+    fit, so the run then described a model it does not hold)."""
+    data = FakeDataset(n=64)
+    cfg = dataclasses.replace(CONFIG, model="linear_ar", covariance="diag")
+    run = tmp_path / "ar"
+    train(baselines, cfg, run_dir=run, dataset=data, progress=False)
+    saved = (run / "config.json").read_text()
+
+    def broken(*args, **kwargs):
+        raise FloatingPointError("the fit diverged")
+
+    monkeypatch.setattr(baselines, "fit", broken)
+    other = dataclasses.replace(cfg, covariance="full")
+    with pytest.raises(FloatingPointError):
+        train(baselines, other, run_dir=run, dataset=data, progress=False, resume=True)
+    assert (run / "config.json").read_text() == saved
+    monkeypatch.undo()
+    assert load_run(run, dataset=data)[1] == cfg
+
+
 def test_resume_drops_the_checkpoints_of_the_abandoned_future(tmp_path):
     """After a crash, latest/ can hold a damaged newer step and best/ a step past the
     resume point (validation runs more often than checkpoints). The resumed run starts

@@ -100,7 +100,7 @@ class DataConfig:
     short: str = "pad"
 
     def __post_init__(self):
-        _check_fields(self, DATA_LIMITS)
+        check_fields(self, DATA_LIMITS)
         if self.source not in ("synthetic", "bandai", "bvh"):
             raise ValueError(
                 f"data.source must be 'synthetic', 'bandai' or 'bvh', got {self.source!r}"
@@ -175,7 +175,7 @@ class TrainConfig:
     ema_decay: float | None = None
 
     def __post_init__(self):
-        _check_fields(self, TRAIN_LIMITS)
+        check_fields(self, TRAIN_LIMITS)
         if self.schedule not in SCHEDULES:
             raise ValueError(
                 f"train.schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}"
@@ -232,11 +232,15 @@ TRAIN_LIMITS: dict[str, _Limit] = {
     "min_lr_ratio": (0.0, 1.0, True, True),
     "val_batch_size": (1, INF, True, True),
     "ema_decay": (0.0, 1.0, False, False),
+    "seed": (-(2**63), 2**63 - 1, True, True),  # jax.random.key takes a 64-bit integer
 }
 
 
-def _check_fields(config: Any, limits: dict[str, _Limit]) -> None:
-    """Raise ``ValueError`` naming the first field of ``config`` outside its limits."""
+def check_fields(config: Any, limits: dict[str, _Limit]) -> None:
+    """Raise ``ValueError`` naming the first field of ``config`` outside its limits
+    (``{field: (lowest, highest, lowest allowed?, highest allowed?)}``; an int lowest means an
+    integer field; None values pass). The experiments' configs check their model fields
+    with it in ``__post_init__``, as :class:`DataConfig` and :class:`TrainConfig` do."""
     section = {"DataConfig": "data", "TrainConfig": "train"}.get(type(config).__name__, "")
     for name, (lo, hi, lo_ok, hi_ok) in limits.items():
         value = getattr(config, name)

@@ -269,7 +269,7 @@ def train(
         for sub in ("checkpoints", "samples"):
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
     fitted = use_fit and hasattr(module, "fit")
-    if not resume or fitted:
+    if not resume:  # a resume writes them once its model exists: a failure leaves the run
         write_run_files()
     keys = run_keys(tc.seed)
     model = module.build(config, key=keys["build"])
@@ -277,8 +277,11 @@ def train(
     eval_fn = jitted_evaluate(module)
     base_meta = {"seed": tc.seed, "rng": np.asarray(jax.random.key_data(keys["train"])).tolist()}
     try:
-        if fitted:
-            return _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta)
+        if fitted:  # a closed-form model refits on --resume: its files after the new fit
+            after = write_run_files if resume else None
+            return _fit(
+                module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, after
+            )
         loop = _Loop(module, config, dataset, run_dir, ckpt, eval_fn, keys, base_meta, mesh=mesh)
         loop.start_from(model, resume=resume)
         if resume:  # only now: a config that cannot restore the run leaves its files alone
@@ -288,12 +291,16 @@ def train(
         ckpt.close()
 
 
-def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta):
+def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, fitted=None):
+    """The closed-form fit, its validation and checkpoint; ``fitted()`` (a refit's run files)
+    is called once the fit and its validation have succeeded."""
     t0 = time.perf_counter()
     kwargs = {"config": config} if "config" in inspect.signature(module.fit).parameters else {}
     model = module.fit(model, dataset, **kwargs)
     seconds = time.perf_counter() - t0
     val = validate(module, config, model, dataset, key=keys["eval"], evaluate_fn=eval_fn)
+    if fitted is not None:
+        fitted()
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     meta = {**base_meta, "step": 0, "data_index": 0, "fit": True, **val}
     state = {"params": params, "rest": rest}
