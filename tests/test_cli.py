@@ -80,6 +80,10 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
     assert code == 0, err
     assert "resumed" in err
     assert [r["step"] for r in read_metrics(run) if "loss" in r] == [1, 2, 3, 4]
+    # --resume continues the saved config: another --preset was silently ignored
+    argv = ["train", "cli_fake", "--resume", "--run-name", "r", "--runs-dir", runs]
+    code, _, err = _run(capsys, *argv, "--preset", "gaussian", "--no-progress", "--no-eval")
+    assert code == 2 and "drop --preset" in err
 
     code, out, err = _run(capsys, "eval", run, "--split", "val")
     assert code == 0, err
@@ -153,6 +157,9 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
         (["render", "/no/such/file.bvh"], "not found"),
         (["data", "download", "nowhere", "--dest", "x"], "unknown dataset"),
         (["frobnicate"], "invalid choice"),
+        (["train", "moglow", "--steps", "0"], "train.steps must be >= 1"),
+        (["train", "baselines", "--steps", "5", "--set", "train.steps=7"], "disagree"),
+        (["train", "baselines", "--set", "ridge=nan"], "ridge must be"),
     ],
 )
 def test_user_errors_are_one_clear_line_and_exit_2(capsys, tmp_path, fake_data, argv, needle):

@@ -44,7 +44,9 @@ def add_set_argument(parser: argparse.ArgumentParser, help: str) -> None:
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     """The flags shared by ``python -m experiments.<name>`` and ``motionflows train``."""
-    parser.add_argument("--preset", default="quick", help="named config (default: quick)")
+    parser.add_argument(
+        "--preset", default=None, help="named config (default: quick; --resume: the run's own)"
+    )
     parser.add_argument(
         "--data", default=None, help="synthetic | bandai | bandai:DIR | bvh:DIR | DIR"
     )
@@ -86,13 +88,18 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
             raise RunError(f"no run of {module.NAME} under {args.runs_dir}/ to resume")
         run_dir = runs.check_run_dir(run_dir)
         _, preset, config = cfg.load_config(run_dir / "config.json", module.Config)
-    else:
-        if args.preset not in module.PRESETS:
+        if args.preset is not None and args.preset != preset:
             raise RunError(
-                f"unknown preset {args.preset!r} for {module.NAME}; "
-                f"available: {sorted(module.PRESETS)}"
+                f"--resume continues {run_dir} with its saved config (preset {preset!r}), "
+                f"not --preset {args.preset}: drop --preset, or start a new run"
             )
-        preset, config = args.preset, module.PRESETS[args.preset]
+    else:
+        preset = "quick" if args.preset is None else args.preset
+        if preset not in module.PRESETS:
+            raise RunError(
+                f"unknown preset {preset!r} for {module.NAME}; available: {sorted(module.PRESETS)}"
+            )
+        config = module.PRESETS[preset]
         run_dir = Path(args.runs_dir) / module.NAME / (args.run_name or runs.new_run_name(preset))
     if args.data is not None:
         config = dataclasses.replace(
@@ -108,6 +115,12 @@ def configure(module: Any, args: argparse.Namespace) -> tuple[Any, str | None, P
         config = cfg.apply_overrides(config, args.overrides)
     except ValueError as err:
         raise RunError(str(err)) from None
+    training.check_steps(module, config)
+    if args.steps is not None and config.train.steps != args.steps:
+        raise RunError(
+            f"--steps {args.steps} and --set train.steps={config.train.steps} disagree: give "
+            "the number of steps once"
+        )
     return config, preset, run_dir
 
 

@@ -244,6 +244,7 @@ def train(
             f"{run_dir} already holds checkpoints: pass --resume to continue it, or choose "
             "another --run-name"
         )
+    check_steps(module, config, use_fit=use_fit)
     if resume and not (run_dir / "config.json").is_file():
         raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
     dataset = config.data.load() if dataset is None else dataset
@@ -289,6 +290,16 @@ def train(
         return loop.run(progress=progress, on_step=on_step)
     finally:
         ckpt.close()
+
+
+def check_steps(module, config, *, use_fit: bool = True) -> None:
+    """RunError unless a gradient-trained run has ``train.steps >= 1`` (0 trained nothing,
+    saved no checkpoint, and its evaluation then failed); a closed-form fit needs none."""
+    if config.train.steps < 1 and not (use_fit and hasattr(module, "fit")):
+        raise RunError(
+            f"train.steps must be >= 1 for {module.NAME} (it trains by gradient steps; got "
+            f"{config.train.steps}): pass --steps N"
+        )
 
 
 def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, fitted=None):
