@@ -160,6 +160,8 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
         (["train", "moglow", "--steps", "0"], "train.steps must be >= 1"),
         (["train", "baselines", "--steps", "5", "--set", "train.steps=7"], "disagree"),
         (["train", "baselines", "--set", "ridge=nan"], "ridge must be"),
+        (["train", "baselines", "--data", "synthetic:/no/such/dir"], "--data"),
+        (["train", "baselines", "--cpu-devices", "100000"], "--cpu-devices must be 1 .. 256"),
     ],
 )
 def test_user_errors_are_one_clear_line_and_exit_2(capsys, tmp_path, fake_data, argv, needle):

@@ -319,7 +319,7 @@ def test_cpu_devices_flag_refuses_zero_with_one_line(tmp_path):
         [_train_cmd(tmp_path / "runs", 2, "--cpu-devices", "0")], [_env(tmp_path)]
     )
     assert rc == 2, out[-3000:]
-    assert "--cpu-devices must be at least 1" in _one_error_line(out)
+    assert "--cpu-devices must be 1 .. 256" in _one_error_line(out)
 
 
 def test_simulate_cpu_devices_sets_the_count_and_keeps_other_flags(monkeypatch):

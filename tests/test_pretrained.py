@@ -145,6 +145,10 @@ def test_a_failed_overwrite_keeps_the_old_export_and_the_run_is_read_once(
         (again / "pretrained.json").write_text(text)
         with pytest.raises(RunError, match=f"pretrained.json.*{needle}|{needle}.*pretrained"):
             PretrainedModel.from_run(again)
+    # `sample` reads it too (a null temperature was a raw TypeError)
+    (again / "pretrained.json").write_text('{"temperature": null}')
+    argv = ["sample", str(again), "--seconds", "1", "--no-gif", "--out", str(tmp_path / "s")]
+    assert cli.main(argv) == 2
 
 
 def test_pretrained_model_speaks_data_units(exported):

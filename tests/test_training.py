@@ -413,6 +413,23 @@ def test_a_failed_refit_leaves_the_fitted_run_as_it_was(tmp_path, monkeypatch):
     assert load_run(run, dataset=data)[1] == cfg
 
 
+def test_eval_records_the_checkpoint_it_read(tmp_path):
+    """``eval_<split>.json`` said "best" when the run had no best checkpoint and "latest"
+    was scored (load_run falls back): it names the checkpoint read and its step."""
+    import shutil
+
+    data = FakeDataset()
+    run = tmp_path / "run"
+    train(fake, CONFIG, run_dir=run, dataset=data, progress=False)
+    evaluate_run(run, "val", dataset=data, print_table=False)
+    table = json.loads((run / "eval_val.json").read_text())
+    assert table["checkpoint"] == "best" and table["step"] == 6
+    shutil.rmtree(run / "checkpoints" / "best")
+    evaluate_run(run, "val", dataset=data, print_table=False)
+    table = json.loads((run / "eval_val.json").read_text())
+    assert table["checkpoint"] == "latest" and table["step"] == 6
+
+
 def test_resume_drops_the_checkpoints_of_the_abandoned_future(tmp_path):
     """After a crash, latest/ can hold a damaged newer step and best/ a step past the
     resume point (validation runs more often than checkpoints). The resumed run starts

@@ -17,7 +17,6 @@ line on stderr and exit with code 2.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import warnings
@@ -167,7 +166,7 @@ def _sample_stem(out: Path, stem: str, run_dir: Path, pose: np.ndarray) -> str:
 
 def cmd_sample(args) -> int:
     from motionflows import run, runs
-    from motionflows.pretrained.model import INFO_FILE
+    from motionflows.pretrained.model import INFO_FILE, read_info
 
     run_dir = runs.resolve_run_dir(args.run_dir)
     if not 1 <= args.num <= MAX_SAMPLES or (
@@ -184,9 +183,7 @@ def cmd_sample(args) -> int:
     fps = float(config.data.fps)
     temperature = args.temperature
     if temperature is None:  # the temperature the model was validated at, else 1
-        info = run_dir / INFO_FILE
-        saved = json.loads(info.read_text()) if info.is_file() else {}
-        temperature = saved.get("temperature", 1.0)
+        temperature = read_info(run_dir / INFO_FILE, module).get("temperature", 1.0)
     temperature = float(temperature)
     if not (np.isfinite(temperature) and temperature >= 0):
         raise RunError(

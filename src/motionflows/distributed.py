@@ -61,6 +61,11 @@ def simulated_device_count(xla_flags: str | None = None) -> int:
     return int(found[-1]) if found else 1
 
 
+MAX_CPU_DEVICES = 256
+"""The most simulated CPU devices ``--cpu-devices`` starts (100 000 hung the backend's
+start for minutes; a useful count is about the number of cores)."""
+
+
 def simulate_cpu_devices(n: int | None, environ: dict | None = None) -> None:
     """``--cpu-devices N``: run JAX's CPU backend as N simulated devices.
 
@@ -74,8 +79,11 @@ def simulate_cpu_devices(n: int | None, environ: dict | None = None) -> None:
     """
     if n is None:
         return
-    if n < 1:
-        raise RunError(f"--cpu-devices must be at least 1, got {n}")
+    if not 1 <= n <= MAX_CPU_DEVICES:
+        raise RunError(
+            f"--cpu-devices must be 1 .. {MAX_CPU_DEVICES} (each device trains a share of "
+            f"the batch on its own threads), got {n}"
+        )
     env = os.environ if environ is None else environ
     flags = _DEVICE_COUNT_FLAG.sub("", env.get("XLA_FLAGS", "")).split()
     env["XLA_FLAGS"] = " ".join([*flags, f"--xla_force_host_platform_device_count={n}"])

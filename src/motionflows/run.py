@@ -160,8 +160,9 @@ def evaluate_run(
     output (default: the folder's name) and ``skeleton`` maps the BVH joints. Takes too short
     for one window are listed as skipped in the JSON and on stderr.
     """
+    module, config, model, saved = restore_run(run_dir, checkpoint=checkpoint)
     if data is None:
-        module, config, model, dataset = load_run(run_dir, checkpoint=checkpoint, dataset=dataset)
+        dataset = config.data.load() if dataset is None else dataset
         bs = batch_size or config.train.val_batch_size or config.train.batch_size
         pose, control = split_windows(
             dataset, split, batch_size=bs, fallback_batches=config.train.eval_batches
@@ -169,7 +170,6 @@ def evaluate_run(
         ldpf = float(dataset.standardizer.log_det_per_frame)
         name, what, extra = split, f"{split} split", {}
     else:
-        module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
         bs = batch_size or config.train.val_batch_size or config.train.batch_size
         std = load_standardizer(run_dir)
         pose, control, name, what, extra = _takes(std, config, data, label, skeleton)
@@ -185,8 +185,8 @@ def evaluate_run(
     out_dir.mkdir(parents=True, exist_ok=True)
     likelihood.write_eval(
         out_dir / f"eval_{name}.json", rows, split=split if data is None else name,
-        experiment=module.NAME, window=window, checkpoint=checkpoint, log_det_per_frame=ldpf,
-        **extra,
+        experiment=module.NAME, window=window, log_det_per_frame=ldpf,
+        checkpoint=saved["which"], step=int(saved["meta"]["step"]), **extra,
     )  # fmt: skip
     if print_table:
         title = f"{module.NAME} — {what}, {pose.shape[0]} windows of {window} frames"

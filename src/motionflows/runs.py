@@ -414,7 +414,7 @@ def parse_data(text: str) -> dict[str, Any]:
         return {"source": text} if text != "bvh" else _bvh_error(text)
     if ":" in text:
         source, path = text.split(":", 1)
-        if source in ("bandai", "bvh", "synthetic") and path:
+        if source in ("bandai", "bvh") and path:  # synthetic data has no folder
             return {"source": source, "path": path}
     if Path(text).is_dir():
         return {"source": "bvh", "path": text}

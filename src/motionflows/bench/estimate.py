@@ -11,7 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from motionflows.bench.budgets import bench_config, load_experiment, parse_data_spec, parse_models
+from motionflows.bench.budgets import (
+    bench_config,
+    check_overrides,
+    load_experiment,
+    parse_data_spec,
+    parse_models,
+)
 from motionflows.bench.reuse import log
 from motionflows.bench.speed import describe_machine
 
@@ -40,10 +46,12 @@ def estimate_training(
     "validations", "projected_hours", ...}}, "total_hours": ...}``.
     """
     data_cfg = parse_data_spec(data, budget)
+    names = parse_models(models)
+    check_overrides(names, budget, data_cfg, overrides)  # a typo'd key is refused, as in bench
     dataset = data_cfg.load()
     out: dict[str, Any] = {"budget": budget, "data": data, "machine": describe_machine()}
     out["models"] = {}
-    for name in parse_models(models):
+    for name in names:
         exp = load_experiment(name)
         config, prov = bench_config(name, budget, data_cfg, exp, overrides)
         entry = _probe(exp, config, prov["preset"], dataset, probe_steps, progress, name)

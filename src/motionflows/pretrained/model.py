@@ -34,7 +34,7 @@ def _array(x: Any, channels: int, name: str, where: str) -> np.ndarray:
     return np.asarray(check_input(x, name, where))
 
 
-def _read_info(path: Path, module) -> dict:
+def read_info(path: Path, module) -> dict:
     """``pretrained.json`` ({} when absent), its temperature and scope checked: a damaged
     file is one ``RunError`` naming it and the fix."""
     if not path.is_file():
@@ -100,7 +100,7 @@ class PretrainedModel:
 
         run_dir = Path(run_dir)
         module, config, model, _ = load_run(run_dir, checkpoint=checkpoint, load_data=False)
-        info = _read_info(run_dir / INFO_FILE, module)
+        info = read_info(run_dir / INFO_FILE, module)
         return cls(module, config, model, load_standardizer(run_dir), info=info)
 
     def sample(self, control, *, seed: int = 0, temperature: float | None = None) -> np.ndarray:
