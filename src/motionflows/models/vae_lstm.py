@@ -325,9 +325,15 @@ class VAELSTM(nnx.Module):
         ``seed`` (B, S, D) when given."""
         if self.prior == "learned":
             return self.latent_prior_net.sample(key, h, temperature=temperature, seed=seed)
-        b, n = h.shape[:2]
-        z = temperature * jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)
+        z = temperature * self._prior_noise(key, *h.shape[:2])
         return z if seed is None else z.at[:, : seed.shape[1]].set(seed)
+
+    def _prior_noise(self, key, b: int, n: int) -> jax.Array:
+        """eps (B, N, D): the standard normals :meth:`_draw_latents` draws for pooled step t
+        of window i from ``key`` (the learned prior's layout or the standard prior's)."""
+        if self.prior == "learned":
+            return self.latent_prior_net.noise(key, b, n)
+        return jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)
 
     def log_likelihood(self, x: jax.Array, mean: jax.Array) -> jax.Array:
         """log p(x | z, c) summed over frames and channels: (B, T, 63) -> (B,)."""
@@ -502,8 +508,9 @@ class VAELSTM(nnx.Module):
         seed = None
         if seed_history is not None:
             mu, log_std = self._seed_posterior(seed_history, b, 4 * n)
-            # the draw the standard prior makes for these steps, so its samples stay as before
-            eps = jax.random.normal(key, (b, n, self.latent_dim), jnp.float32)[:, : mu.shape[1]]
+            # the draws the prior makes for these steps (it then takes the seed's instead), so
+            # no drawn step reuses a seed's noise (the learned prior draws in another layout)
+            eps = self._prior_noise(key, b, n)[:, : mu.shape[1]]
             seed = mu + jnp.exp(log_std) * (temperature * eps)
         return self.decode(self.canvas(self._draw_latents(key, h, temperature, seed), h))
 

@@ -58,6 +58,11 @@ class LatentPrior(nnx.Module):
         y, _ = self.lstm(previous, context=h if self.context_dim else None)
         return self._split(self.head(y))
 
+    def noise(self, key: Array, b: int, n: int) -> Array:
+        """eps (B, N, D) ~ N(0, I): the standard normals :meth:`sample` scales for step t
+        of window i is ``eps[i, t]`` (drawn (N, B, D), as it always was)."""
+        return jnp.swapaxes(jax.random.normal(key, (n, b, self.latent_dim), jnp.float32), 0, 1)
+
     def sample(
         self,
         key: Array,
@@ -72,7 +77,7 @@ class LatentPrior(nnx.Module):
         are drawn after them."""
         b, n = h.shape[:2]
         d = self.latent_dim
-        eps = jax.random.normal(key, (n, b, d), jnp.float32)
+        eps = jnp.swapaxes(self.noise(key, b, n), 0, 1)
         given = jnp.zeros((n, b, d), jnp.float32)
         is_given = jnp.zeros((n,), bool)
         if seed is not None:
