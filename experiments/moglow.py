@@ -335,8 +335,11 @@ def window_log_prob(model: MoGlow, pose, control) -> jax.Array:
 
 
 @jax.jit
-def _sample(model, key, control, temperature, seed_history):
-    return model.sample(key, control, seed_history=seed_history, temperature=temperature)
+def _sample(model, key, control, temperature, seed_history, seed_control):
+    return model.sample(
+        key, control, seed_history=seed_history, seed_control=seed_control,
+        temperature=temperature,
+    )  # fmt: skip
 
 
 def sample(
@@ -347,6 +350,7 @@ def sample(
     temperature: float = 1.0,
     seed_history=None,
     seed_pose=None,
+    seed_control=None,
 ) -> jax.Array:
     """Poses (B, T, 63), standardised, following control (B, T, 3) (jitted scan over frames).
     The argument order is that of ``MoGlow.sample(key, control)``; the old ``(model,
@@ -354,8 +358,10 @@ def sample(
 
     ``seed_history``: None (zero history, the official start) or (B, S, 63) standardised
     poses that precede the first frame (the last tau are used); ``seed_pose`` is its
-    deprecated old name. Samples from :func:`motionflows.inference.inference_copy` of the
-    model (separate step weights: the same poses, faster on XLA:CPU).
+    deprecated old name. ``seed_control`` (B, S, 3) standardised: the controls of those
+    frames (default zeros, the mean control; :meth:`MoGlow.init_stream`). Samples from
+    :func:`motionflows.inference.inference_copy` of the model (separate step weights: the
+    same poses, faster on XLA:CPU).
     """
     key, control = key_first("moglow.sample", key, control)
     control, seed_history = check_sample_args(
@@ -367,7 +373,7 @@ def sample(
         seed_pose=seed_pose,
     )
     sampler = inference_copy(model)
-    return _sample(sampler, key, control, jnp.float32(temperature), seed_history)
+    return _sample(sampler, key, control, jnp.float32(temperature), seed_history, seed_control)
 
 
 if __name__ == "__main__":

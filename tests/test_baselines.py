@@ -175,3 +175,16 @@ def test_bad_shapes_raise_clear_errors():
         assert "covariance" in str(err)
     else:
         raise AssertionError("no error")
+
+
+def test_ar_refuses_a_control_of_another_length_and_a_skip_that_scores_nothing():
+    """A control one frame longer was silently cut to the pose's length, a shorter one or
+    another batch gave a raw concatenate error, and skip >= T returned 0 as a likelihood."""
+    import pytest
+
+    m = LinearGaussianAR(TAU, pose_dim=D, control_dim=C)
+    for control in (jnp.zeros((1, 6, C)), jnp.zeros((1, 4, C)), jnp.zeros((2, 5, C))):
+        with pytest.raises(ValueError, match="must share"):
+            m.log_prob(jnp.zeros((1, 5, D)), control)
+    with pytest.raises(ValueError, match="skip must be in"):
+        m.log_prob(jnp.zeros((1, 5, D)), jnp.zeros((1, 5, C)), skip=5)

@@ -652,6 +652,21 @@ def test_scan_equals_chain_values_log_dets_and_grads():
             close(a, b, 1e-4)
 
 
+def test_scan_computes_a_low_precision_input_in_float32():
+    """A bfloat16 input to a Scan failed inside lax.scan ("carry input and carry output
+    must have equal types": its first ActNorm returns float32); it is now computed in
+    float32, the result of the upcast input."""
+    scan = built("scan")
+    x, c = data("scan", (3,))
+    low = x.astype(jnp.bfloat16)
+    z, _ = scan.inverse_and_log_det(low, context=c)
+    assert z.dtype == jnp.float32
+    close(z, scan.inverse_and_log_det(low.astype(jnp.float32), context=c)[0], 1e-6)
+    z, _ = scan.inverse_and_log_det(x, context=c)
+    back, _ = scan.forward_and_log_det(z.astype(jnp.bfloat16), context=c)
+    assert back.dtype == jnp.float32
+
+
 def test_scan_from_list_and_stacked_module():
     steps = [perturb(_glow_step(nnx.Rngs(i)), i) for i in range(2)]
     scan = bj.Scan(steps)

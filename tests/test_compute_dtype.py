@@ -82,3 +82,26 @@ def test_the_bench_looks_for_runs_of_the_resolved_precision():
     for name in FLOWS:
         config, _ = bench.bench_config(name, "smoke", data)
         assert config.compute_dtype == "float32"
+
+
+def test_float32_by_name_is_plain_float32_in_both_flows():
+    """MoGlow kept the string "float32" (the Glow maps it to None): its products then took
+    the low-precision custom-VJP path (no forward mode) and ``streaming_model`` treated it
+    as a low-precision model. Both flows now store None for float32 and refuse other names."""
+    from flax import nnx
+
+    from motionflows.inference import streaming_model
+    from motionflows.models.glow import Glow
+    from motionflows.models.moglow import MoGlow
+
+    moglow = MoGlow(6, 2, tau=2, K=1, hidden=4, compute_dtype="float32", rngs=nnx.Rngs(0))
+    glow = Glow(6, levels=1, K=1, hidden=4, control_dim=2, compute_dtype="float32",
+                rngs=nnx.Rngs(0))  # fmt: skip
+    assert moglow.compute_dtype is None and glow.compute_dtype is None
+    assert streaming_model(moglow) is not moglow  # the float32 inference copy
+    x, c = jax.numpy.ones((1, 4, 6)), jax.numpy.ones((1, 4, 2))
+    jax.jvp(lambda x: moglow.log_prob(x, c), (x,), (x,))  # forward mode works
+    with pytest.raises(ValueError, match="MoGlow: compute_dtype must be"):
+        MoGlow(6, 2, tau=2, K=1, hidden=4, compute_dtype="float64", rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="Glow: compute_dtype must be"):
+        Glow(6, levels=1, K=1, hidden=4, compute_dtype="float64", rngs=nnx.Rngs(0))

@@ -200,6 +200,10 @@ def test_residual_init_normalises_the_first_frames_and_the_changes(residual, key
         np.testing.assert_allclose(flat.mean(0), 0.0, atol=1e-4)
         np.testing.assert_allclose(flat.std(0), 1.0, atol=1e-3)
     np.testing.assert_allclose(decode(fresh, encode(fresh, x, c), c), x, atol=2e-4, rtol=1e-4)
+    # one window gives the first-frame ActNorm one value per channel: every channel looked
+    # constant and got a scale of 1e6 (log-likelihoods of -3e13 afterwards), silently
+    with pytest.raises(ValueError, match="at least 2 windows"):
+        initialize_from_data(residual, x[:1], context=c[:1])
 
 
 def test_additive_couplings_preserve_volume(additive, key):

@@ -79,6 +79,28 @@ def test_official_scope_round_trip_with_seed_history():
         z, control[:, TAU:], seed_history=pose[:, :TAU], seed_control=control[:, :TAU]
     )
     np.testing.assert_allclose(x_gen, targets, atol=1e-5)
+    with pytest.raises(ValueError, match=r"z must be \(B, T, 6\) with the control's"):
+        model.generate(z[:, :-1], control[:, TAU:])  # was a raw lax.scan length error
+
+
+def test_the_experiments_sampler_passes_the_seed_controls():
+    """experiments.moglow.sample could seed the history poses but not their controls (the
+    first tau conditions then paired real poses with the mean control)."""
+    import experiments.moglow as exp
+
+    model = _model()
+    pose, control = _data(t=10)
+    seeded = dict(seed_history=pose[:, :TAU], temperature=0.0)
+    key = jax.random.key(0)
+    with_controls = exp.sample(
+        model, key, control[:, TAU:], seed_control=control[:, :TAU], **seeded
+    )
+    direct = model.sample(key, control[:, TAU:], seed_control=control[:, :TAU], **seeded)
+    np.testing.assert_allclose(with_controls, direct, atol=1e-5)
+    assert (
+        float(jnp.abs(with_controls - exp.sample(model, key, control[:, TAU:], **seeded)).max())
+        > 1e-3
+    )
 
 
 @pytest.mark.parametrize("scope", ["official", "window"])

@@ -68,6 +68,12 @@ class ActNorm(Bijector):
                 "does this by itself)."
             )
         flat = jnp.reshape(u, (-1, self.num_channels)).astype(jnp.float32)
+        if flat.shape[0] < 2:  # one value: every channel looks constant (scale 1e6)
+            raise ValueError(
+                f"ActNorm initialisation got one value per channel (input {tuple(u.shape)}), "
+                "so it cannot measure a spread: initialise on a batch of at least 2 windows "
+                "(train.batch_size >= 2)"
+            )
         mean = jnp.mean(flat, axis=0)
         std = jnp.sqrt(jnp.mean(jnp.square(flat - mean), axis=0))  # biased variance
         return mean, std

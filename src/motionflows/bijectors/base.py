@@ -105,6 +105,16 @@ def data_init_mode() -> Iterator[None]:
 # ----------------------------------------------------------------------------- validation
 
 
+def _at_least_float32(x: Any) -> Any:
+    """``x`` in float32 when it is a lower-precision float (bfloat16, float16): a scanned
+    flow's carry keeps one dtype, and its first ActNorm computes in float32 (as in a
+    :class:`Chain`); float32 and float64 pass unchanged."""
+    dtype = getattr(x, "dtype", None)
+    if dtype is not None and jnp.issubdtype(dtype, jnp.floating) and dtype.itemsize < 4:
+        return x.astype(jnp.float32)
+    return x
+
+
 def check_event(x: Any, num_channels: int | None, name: str, *, what: str = "inputs") -> None:
     """Raise a clear ``ValueError`` unless ``x`` is an array of shape (..., T, num_channels).
 
@@ -531,6 +541,7 @@ class Scan(Bijector):
     # -- maps
 
     def forward_and_log_det(self, x, *, context=None):
+        x = _at_least_float32(x)
         if is_initializing():
             return self._run_eagerly(x, context, forward=True)
 
@@ -538,6 +549,7 @@ class Scan(Bijector):
         return x, total
 
     def inverse_and_log_det(self, y, *, context=None):
+        y = _at_least_float32(y)
         if is_initializing():
             return self._run_eagerly(y, context, forward=False)
 
@@ -551,6 +563,7 @@ class Scan(Bijector):
         return jax.vmap(lambda step: step.initial_carry(batch_shape))(self.steps)
 
     def forward_step(self, x_t, *, context_t=None, carry=None):
+        x_t = _at_least_float32(x_t)
         if carry is None:
             carry = self.initial_carry(x_t.shape[:-1])
         acc = (x_t, jnp.zeros(x_t.shape[:-1], jnp.float32), context_t)
@@ -558,6 +571,7 @@ class Scan(Bijector):
         return x_t, total, carry
 
     def inverse_step(self, y_t, *, context_t=None, carry=None):
+        y_t = _at_least_float32(y_t)
         if carry is None:
             carry = self.initial_carry(y_t.shape[:-1])
         acc = (y_t, jnp.zeros(y_t.shape[:-1], jnp.float32), context_t)

@@ -125,6 +125,11 @@ class LinearGaussianAR(nnx.Module):
         before frame 0 are zeros."""
         pose = _check_pose(pose, self.pose_dim)
         control = _check_pose(control, self.control_dim, "control")
+        if control.shape[:2] != pose.shape[:2]:
+            raise ValueError(
+                f"LinearGaussianAR: pose {tuple(pose.shape)} and control "
+                f"{tuple(control.shape)} must share (B, T)"
+            )
         b, t = pose.shape[0], pose.shape[1]
         tau = self.tau
         if history is None:
@@ -152,6 +157,11 @@ class LinearGaussianAR(nnx.Module):
         """Sum of log p(x_t | h_t) over frames skip..T-1: -> (B,). With ``skip=0`` this is
         the whole-window score with a zero (mean-pose) history; with ``skip=tau`` frames
         tau..T-1 given the true first tau frames (their history is then all real)."""
+        if not 0 <= skip < pose.shape[1]:
+            raise ValueError(
+                f"LinearGaussianAR.log_prob: skip must be in [0, T) to score any frame, got "
+                f"skip={skip} for T={pose.shape[1]}"
+            )
         return jnp.sum(self.frame_log_prob(pose, control)[:, skip:], -1)
 
     def sample(

@@ -69,6 +69,7 @@ from motionflows.deprecation import renamed
 from motionflows.distributions import Normal, Transformed
 from motionflows.models.validation import check_input, check_length, check_temperature
 from motionflows.nets.conv import ConvNet, TimeConv
+from motionflows.nets.precision import compute_dtype_name
 
 Array = jax.Array
 
@@ -81,19 +82,6 @@ COUPLINGS = ("affine", "additive")
 def standard_normal_log_prob(z: Array) -> Array:
     """sum over the last axis of log N(z; 0, 1): (..., N) -> (...)."""
     return Normal((None,)).log_prob(z)
-
-
-def _normalize_dtype(dtype: Any) -> str | None:
-    if dtype is None:
-        return None
-    name = jnp.dtype(dtype).name
-    if name == "float32":
-        return None
-    if name not in ("bfloat16", "float16"):
-        raise ValueError(
-            f"Glow: compute_dtype must be None/'float32', 'bfloat16' or 'float16', got {dtype!r}"
-        )
-    return name
 
 
 class Glow(nnx.Module):
@@ -168,7 +156,7 @@ class Glow(nnx.Module):
         self.hidden = int(hidden)
         self.control_dim = int(control_dim or 0)
         self.prior = prior
-        self.compute_dtype = _normalize_dtype(compute_dtype)
+        self.compute_dtype = compute_dtype_name(compute_dtype, "Glow")
         self.coupling = coupling
         self.coupling_eps = float(coupling_eps)
         self.length = DEFAULT_WINDOW if length is None else int(length)  # default sample T

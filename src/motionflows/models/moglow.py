@@ -83,6 +83,7 @@ from motionflows.nets.moglow_conditioners import (
     FeedForwardConditioner,
     LSTMConditioner,
 )
+from motionflows.nets.precision import compute_dtype_name
 
 Array = jax.Array
 
@@ -412,8 +413,7 @@ class MoGlow(nnx.Module):
                 f"stance_hint needs the motion features (pose_dim={POSE_DIM} joint positions, "
                 f"control_dim={CONTROL_DIM} root moves), got {pose_dim}, {control_dim}"
             )
-        if compute_dtype is not None:
-            compute_dtype = jnp.dtype(compute_dtype).name
+        compute_dtype = compute_dtype_name(compute_dtype, "MoGlow")
         self.pose_dim = int(pose_dim)
         self.control_dim = int(control_dim)
         self.tau = int(tau)
@@ -835,6 +835,11 @@ class MoGlow(nnx.Module):
         """Latents z (B, T, D) and control (B, T, C) -> poses (B, T, D), frame by frame."""
         _, control = self._check(None, control, "generate")
         z = check_input(z, "z", "MoGlow.generate")
+        if z.ndim != 3 or z.shape[:2] != control.shape[:2] or z.shape[-1] != self.pose_dim:
+            raise ValueError(
+                f"MoGlow.generate: z must be (B, T, {self.pose_dim}) with the control's (B, T) "
+                f"{tuple(control.shape[:2])}, got {tuple(z.shape)}"
+            )
         state = self.init_stream(control.shape[0], seed_history, seed_control=seed_control)
 
         def body(st, inputs):

@@ -19,11 +19,27 @@ from flax import nnx
 
 Array = jax.Array
 
-__all__ = ["MATMUL_WEIGHTS", "matmul", "outer_sum", "product"]
+__all__ = ["MATMUL_WEIGHTS", "compute_dtype_name", "matmul", "outer_sum", "product"]
 
 # The parameters the conditioner modules only ever use through :func:`matmul` (LSTM, MLP
 # and convolution weights); biases, ActNorm and the 1x1 maps are never among them.
 MATMUL_WEIGHTS = frozenset({"w_ih", "w_hh", "w_out", "ws", "kernel", "w_embed"})
+
+
+def compute_dtype_name(dtype, where: str) -> str | None:
+    """A model's ``compute_dtype`` argument as it is stored: None for float32 (None or
+    "float32": plain float32 products, forward-mode differentiable), else "bfloat16" or
+    "float16"; ValueError naming ``where`` for anything else."""
+    if dtype is None:
+        return None
+    name = jnp.dtype(dtype).name
+    if name == "float32":
+        return None
+    if name not in ("bfloat16", "float16"):
+        raise ValueError(
+            f"{where}: compute_dtype must be None/'float32', 'bfloat16' or 'float16', got {dtype!r}"
+        )
+    return name
 
 
 def product(x: Array, w: Array, cd) -> Array:
