@@ -276,8 +276,8 @@ def test_weight_decay_is_l2_with_adam_and_decoupled_with_adamw():
 
 def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_path):
     # train.ema_decay changes no training step, and the model a run gives (the returned
-    # model, load_run, export) is the exponential average of the iterates p_0..p_6
-    # (avg_k = d avg_{k-1} + (1 - d) p_k); they come from a run without it that
+    # model, load_run, export) is the debiased exponential average of the iterates p_1..p_6
+    # (weights (1 - d) d^(n - k) / (1 - d^n)); they come from a run without it that
     # checkpoints every step
     data, d = FakeDataset(), 0.6
     every = dataclasses.replace(CONFIG.train, checkpoint_every=1, keep_checkpoints=6)
@@ -295,8 +295,9 @@ def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_pat
     ckpt.close()
     np.testing.assert_array_equal(iterates[-1][0], _params(plain.model)[0])
     want = iterates[0]
-    for p in iterates[1:]:
-        want = [d * a + (1 - d) * x for a, x in zip(want, p, strict=True)]
+    for k, p in enumerate(iterates[1:], start=1):  # the debiased average (no p_0 weight)
+        rate = (1 - d) / (1 - d**k)
+        want = [a + rate * (x - a) for a, x in zip(want, p, strict=True)]
 
     cfg = dataclasses.replace(CONFIG, train=dataclasses.replace(CONFIG.train, ema_decay=d))
     avg = train(fake, cfg, run_dir=tmp_path / "avg", dataset=data, progress=False)
@@ -343,8 +344,19 @@ def test_parameter_average_passes_updates_through_and_averages():
     g = {"w": jnp.array([2.0, 2.0])}
     updates, state = opt.update(g, state, p)
     np.testing.assert_allclose(updates["w"], [-1.0, -1.0])  # sgd's, unchanged
-    want = [0.75 * 1.0 + 0.25 * 0.0, 0.75 * -2.0 + 0.25 * -3.0]  # d avg + (1 - d) (p + u)
-    np.testing.assert_allclose(averaged_parameters(state)["w"], want)
+    np.testing.assert_allclose(averaged_parameters(state)["w"], [0.0, -3.0])  # p_1 alone
+    p2 = optax.apply_updates(p, updates)
+    updates, state = opt.update(g, state, p2)  # p_2 = [-1, -4]; weights 0.25, 0.1875
+    want = [(0.75 * 0.0 + -1.0) / 1.75, (0.75 * -3.0 + -4.0) / 1.75]
+    np.testing.assert_allclose(averaged_parameters(state)["w"], want, rtol=1e-6)
+    # far fewer steps than 1 / (1 - d): the average is of the iterates, not the initial
+    # parameters (it kept d^n of them: 98 % after 20 steps of d = 0.999)
+    slow = optax.chain(optax.sgd(1.0), parameter_average(0.999))
+    w, state = {"w": jnp.zeros(())}, slow.init({"w": jnp.zeros(())})
+    for _ in range(20):  # the iterates 1, 2, ..., 20
+        updates, state = slow.update({"w": -jnp.ones(())}, state, w)
+        w = optax.apply_updates(w, updates)
+    assert abs(float(averaged_parameters(state)["w"]) - 10.5) < 0.1
     assert averaged_parameters(optax.adam(1.0).init(p)) is None
     with pytest.raises(ValueError, match="decay"):
         parameter_average(1.0)

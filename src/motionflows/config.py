@@ -170,8 +170,9 @@ class TrainConfig:
     eps: float = 1e-8
     min_lr_ratio: float = 0.0  # cosine: final lr = lr * min_lr_ratio; noam: the floor
     val_batch_size: int | None = None  # None = batch_size
-    # Polyak averaging: after every step avg <- d avg + (1 - d) params; validation, the
-    # checkpoints' "params" (sampling, eval, export) use avg. None: the last iterate.
+    # Polyak averaging: the debiased exponential average of the iterates (decay d,
+    # optim.parameter_average); validation, the checkpoints' "params" (sampling, eval,
+    # export) use it. None: the last iterate.
     ema_decay: float | None = None
 
     def __post_init__(self):

@@ -77,36 +77,45 @@ def gradient_clipping(train: cfg.TrainConfig) -> optax.GradientTransformation:
 
 
 class ParameterAverageState(NamedTuple):
-    """The running average of the parameters (a pytree shaped like them, float32)."""
+    """The running average of the parameters (a pytree shaped like them, float32) and the
+    number of updates averaged (int32)."""
 
     average: Any
+    count: Any
 
 
 def parameter_average(decay: float) -> optax.GradientTransformation:
     """Polyak averaging of the parameters, as the last link of an optax chain.
 
-    The updates pass through unchanged; the state keeps, after every update,
+    The updates pass through unchanged; after the n-th update p_n the state holds the
+    debiased exponential average of p_1 .. p_n,
 
-        average <- decay * average + (1 - decay) * (params + updates)
+        average_n = sum_k (1 - d) d^(n - k) p_k / (1 - d^n)
+                  = average_{n-1} + (p_n - average_{n-1}) (1 - d) / (1 - d^n),
 
-    starting from the parameters it is initialised with (after any data-dependent
-    initialisation), so it averages the iterates over the last ~1 / (1 - decay) steps.
-    Read it with :func:`averaged_parameters`. Skipping a step (the trainer's non-finite
-    guard keeps the old optimiser state) skips its average update too.
+    so it averages the iterates over the last ~1 / (1 - d) steps and, before that many
+    steps, all of them equally (d^n of the initial parameters stayed in the average
+    before 2026-12-07: 37 % after 1000 steps of d = 0.999). Before the first update it
+    holds the initial parameters (after any data-dependent initialisation). Read it with
+    :func:`averaged_parameters`. Skipping a step (the trainer's non-finite guard keeps the
+    old optimiser state) skips its average update too.
     """
     d = float(decay)
     if not 0.0 < d < 1.0:
         raise ValueError(f"parameter_average needs 0 < decay < 1, got {decay}")
 
     def init(params):
-        return ParameterAverageState(jax.tree_util.tree_map(jnp.copy, params))  # own buffers
+        average = jax.tree_util.tree_map(jnp.copy, params)  # own buffers
+        return ParameterAverageState(average, jnp.zeros((), jnp.int32))
 
     def update(updates, state, params=None):
         if params is None:
             raise ValueError("parameter_average needs the parameters: update(g, s, params)")
         new = optax.apply_updates(params, updates)
-        average = jax.tree_util.tree_map(lambda a, p: d * a + (1.0 - d) * p, state.average, new)
-        return updates, ParameterAverageState(average)
+        count = state.count + 1
+        rate = (1.0 - d) / (1.0 - jnp.float32(d) ** count.astype(jnp.float32))
+        average = jax.tree_util.tree_map(lambda a, p: a + rate * (p - a), state.average, new)
+        return updates, ParameterAverageState(average, count)
 
     return optax.GradientTransformation(init, update)
 
