@@ -8,7 +8,7 @@ import sys
 
 PROBE = (
     "import jax; from motionflows.compile_cache import use_persistent_cache as u; "
-    "print(u(), jax.config.jax_compilation_cache_dir)"
+    "print(u(), jax.config.jax_compilation_cache_dir, jax.config.jax_compilation_cache_max_size)"
 )
 
 
@@ -23,19 +23,20 @@ def _probe(tmp_path, **env):
 
 
 def test_default_folder_is_under_the_user_cache(tmp_path):
-    folder, configured = _probe(tmp_path)
+    folder, configured, limit = _probe(tmp_path)
     assert folder == configured == str(tmp_path / "xdg" / "motionflows" / "jax")
+    assert int(limit) == 4 * 2**30  # it grew without bound
     assert (tmp_path / "xdg" / "motionflows" / "jax").is_dir()
 
 
 def test_named_folder_and_off(tmp_path):
-    folder, configured = _probe(tmp_path, MOTIONFLOWS_COMPILE_CACHE=str(tmp_path / "c"))
+    folder, configured, _ = _probe(tmp_path, MOTIONFLOWS_COMPILE_CACHE=str(tmp_path / "c"))
     assert folder == configured == str(tmp_path / "c")
-    folder, configured = _probe(tmp_path, MOTIONFLOWS_COMPILE_CACHE="0")
+    folder, configured, _ = _probe(tmp_path, MOTIONFLOWS_COMPILE_CACHE="0")
     assert folder == configured == "None"
     assert not (tmp_path / "xdg").exists()
 
 
 def test_the_users_jax_setting_wins(tmp_path):
-    folder, configured = _probe(tmp_path, JAX_COMPILATION_CACHE_DIR=str(tmp_path / "mine"))
+    folder, configured, _ = _probe(tmp_path, JAX_COMPILATION_CACHE_DIR=str(tmp_path / "mine"))
     assert folder == "None" and configured == str(tmp_path / "mine")

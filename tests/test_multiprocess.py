@@ -355,3 +355,15 @@ def test_cpu_devices_on_an_accelerator_warns_that_it_has_no_effect(monkeypatch):
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
     with pytest.warns(UserWarning, match="--cpu-devices 4 has no effect: JAX computes on gpu"):
         check_cpu_devices(4)
+
+
+@pytest.mark.parametrize("value", ["0", "-5"])
+def test_a_join_timeout_of_no_seconds_is_refused(monkeypatch, value):
+    """MOTIONFLOWS_INIT_TIMEOUT=0 silently became 300 s, a negative one fired the watchdog
+    at once (exit 2 with a misleading "not all joined")."""
+    from motionflows.distributed import initialize
+    from motionflows.errors import RunError
+
+    monkeypatch.setenv("MOTIONFLOWS_INIT_TIMEOUT", value)
+    with pytest.raises(RunError, match="MOTIONFLOWS_INIT_TIMEOUT must be a number of seconds"):
+        initialize()

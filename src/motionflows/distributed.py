@@ -195,7 +195,11 @@ def initialize(
     coordinator_address = coordinator_address or env.get(COORDINATOR) or None
     num_processes = num_processes if num_processes is not None else _int_env(env, NUM_PROCESSES)
     process_id = process_id if process_id is not None else _int_env(env, PROCESS_ID)
-    timeout_s = timeout_s if timeout_s is not None else (_int_env(env, INIT_TIMEOUT) or 300)
+    if timeout_s is None:
+        timeout_s = _int_env(env, INIT_TIMEOUT)
+        timeout_s = 300 if timeout_s is None else timeout_s
+    if timeout_s <= 0:
+        raise RunError(f"{INIT_TIMEOUT} must be a number of seconds > 0, got {timeout_s}")
     if coordinator_address is None:
         if num_processes is not None or process_id is not None:
             raise RunError(

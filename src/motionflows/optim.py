@@ -34,7 +34,9 @@ def noam_schedule(lr: float, warmup: int, minimum: float) -> optax.Schedule:
                 once g > W
 
     a linear warm-up to ``lr`` at g = W - 1, then decay as sqrt(W / (g + 1)). With
-    ``minimum == lr`` it is a warm-up followed by a constant ``lr``."""
+    ``minimum == lr`` it is a warm-up followed by a constant ``lr``, but for step g = W
+    itself, where the floor does not apply yet (lr sqrt(W / (W + 1)), as the official code's
+    ``global_step > warmup_steps``)."""
     w = float(max(1, warmup))
 
     def schedule(step):
