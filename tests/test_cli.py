@@ -160,6 +160,7 @@ def test_train_eval_sample_runs(tmp_path, capsys, fake_data):
         (["train", "moglow", "--steps", "0"], "train.steps must be >= 1"),
         (["train", "baselines", "--steps", "5", "--set", "train.steps=7"], "disagree"),
         (["train", "baselines", "--set", "ridge=nan"], "ridge must be"),
+        (["eval", "pretrained:moglow-bandai", "--data", "bvh:x", "--split", "val"], "give one"),
         (["train", "baselines", "--data", "synthetic:/no/such/dir"], "--data"),
         (["train", "baselines", "--cpu-devices", "100000"], "--cpu-devices must be 1 .. 256"),
     ],

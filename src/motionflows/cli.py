@@ -87,10 +87,15 @@ def cmd_eval(args) -> int:
         raise RunError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.data is None and (args.label or args.skeleton):
         raise RunError("--label and --skeleton go with --data (other takes to score)")
+    if args.data is not None and args.split is not None:
+        raise RunError(
+            "--split picks a split of the run's own data and --data scores other takes: "
+            "give one of them"
+        )
     out = _output_folder(args, run_dir, "evals", run_dir)
     run.evaluate_run(
         run_dir,
-        args.split,
+        args.split or "test",
         data=args.data,
         label=args.label,
         skeleton=args.skeleton or "bandai",
@@ -458,7 +463,12 @@ def _add_eval(sub) -> None:
     """The ``eval`` command's flags."""
     p = sub.add_parser("eval", help="likelihood table of a run (writes eval_<split>.json)")
     p.add_argument("run_dir")
-    p.add_argument("--split", default="test", choices=["train", "val", "test"])
+    p.add_argument(
+        "--split",
+        default=None,
+        choices=["train", "val", "test"],
+        help="the split of the run's own data to score (default test)",
+    )
     p.add_argument(
         "--data",
         default=None,
