@@ -177,7 +177,8 @@ class LinearGaussianAR(nnx.Module):
 
         ``seed_history`` (B, S, D): the last ``tau`` of these frames seed the history (zeros
         if None or shorter); ``history=`` is its deprecated old name. Controls before frame
-        0 are zeros.
+        0 are zeros. Window i's draw depends on B for the same key (the residuals are drawn
+        (T, B, D)); the bench's numbers were measured so.
         """
         seed_history = renamed(
             "LinearGaussianAR.sample",

@@ -461,7 +461,9 @@ class VAELSTM(nnx.Module):
         (``seed_frames=`` is its deprecated old name), S a positive multiple of 4 and <= T,
         the latents of the first S/4 steps are drawn from the posterior q(z | seed frames)
         (std scaled by ``temperature``; the recurrent sampler reads only z_1); the returned
-        frames are all decoded (the seed is not pasted in).
+        frames are all decoded (the seed is not pasted in). Window i's draw depends on B for
+        the same key (the learned prior draws its normals (T/4, B, D)); the bench's and the
+        shipped model's numbers were measured so, and MoGlow's does not.
         """
         seed_history = renamed(
             "VAELSTM.sample",
