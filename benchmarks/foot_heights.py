@@ -14,7 +14,7 @@ For the takes ``--takes`` (default: every Bandai take of the performer D2-C in
 source:
 
 * ``block_min_height_cm``: mean and std, over every window's 1 s blocks, of the lowest foot
-  height in the block (cm; ground truth ~0 and ~0), and ``within_window_std_cm``, its std
+  height in the block (cm; ground truth ~0 and ~0), and ``within_window_std``, its std
   within a window (the wander over 4 s);
 * ``height_above_floor_cm``: 10th, 25th and 50th percentile of the feet's heights above the
   window's floor (the contact rule's floor);
@@ -37,8 +37,7 @@ With ``--foot-lock`` each model's row is followed by two of the same samples loc
 :func:`motionflows.foot_lock.foot_lock` and by
 :class:`motionflows.foot_lock.StreamingFootLock` (frame by frame from each window's first
 frame, as ``motionflows play --foot-lock`` does), with ``moved_cm``: how far the lock moved
-the joints (median, 99th percentile and maximum over the frames of each frame's largest
-move).
+the joints (:func:`moved_cm`).
 
 Used for docs/readme/moglow_quality.md (stance heights, strides, foot lock)::
 
@@ -121,6 +120,17 @@ def strides(pose: np.ndarray, control: np.ndarray, *, fps: float) -> dict:
     return row
 
 
+def moved_cm(locked: np.ndarray, sample: np.ndarray) -> dict:
+    """How far a lock moved the joints of poses (N, T, 63) metres: the median, 99th
+    percentile and maximum over the frames of each frame's largest joint move (the length
+    of its 3D displacement, cm; before 2026-12-07 the largest single coordinate change,
+    up to sqrt(3) less)."""
+    joints = (np.asarray(locked) - np.asarray(sample)).reshape(*np.shape(sample)[:-1], -1, 3)
+    move = np.linalg.norm(joints, axis=-1).max(-1).ravel() * 100.0
+    return {k: round(float(np.percentile(move, q)), 2) for k, q in
+            (("p50", 50), ("p99", 99), ("max", 100))}  # fmt: skip
+
+
 def streamed_lock(pose: np.ndarray, control: np.ndarray, *, fps: float) -> np.ndarray:
     """Poses (N, T, 63) locked frame by frame by a fresh StreamingFootLock per window."""
     out = np.empty_like(pose)
@@ -186,11 +196,8 @@ def main(argv: list[str] | None = None) -> int:
             ("foot lock", foot_lock(sample, control)),
             ("streaming foot lock", streamed_lock(sample, control, fps=FPS)),
         ):
-            move = np.abs(locked - sample).max(-1).ravel() * 100.0
-            moved = {k: round(float(np.percentile(move, q)), 2) for k, q in
-                     (("p50", 50), ("p99", 99), ("max", 100))}  # fmt: skip
             print(json.dumps({"source": f"{spec} + {how}", "temperature": temperature,
-                              **row(locked), "moved_cm": moved}))  # fmt: skip
+                              **row(locked), "moved_cm": moved_cm(locked, sample)}))  # fmt: skip
     return 0
 
 

@@ -13,8 +13,11 @@ nearest training window on each scored control). Prints one JSON object per
         --steps 400,800,1600 --temperatures 1.0,0.8,0.6 --out runs/quality/moglow-quick
 
 ``--set key=value`` overrides config fields (the ``motionflows train`` grammar; repeatable); the run
-directory is ``OUT/run``; an existing run is resumed (milestones already passed are only
-re-scored).
+directory is ``OUT/run``; an existing run is resumed (a milestone it has already passed
+scores its newest checkpoint: each row's ``steps`` is the step scored, ``milestone`` the
+one asked, with a warning when they differ). ``--run RUN`` scores a finished run on its own
+data and config (``--preset``, ``--data``, ``--split``, ``--steps`` and ``--set`` are then
+ignored, with a warning).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from motionflows import bench, runs
 from motionflows.bench.report import REFERENCE_ROWS
 from motionflows.cli_train import add_set_argument
 from motionflows.config import apply_overrides
+from motionflows.errors import RunError
 from motionflows.run import restore_run
 from motionflows.training import train
 from motionflows.windows import pick, standardized
@@ -138,9 +142,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    """The script; bad input (an unknown experiment or preset, a missing run, a bad
+    ``--set``) is one ``error:`` line and exit code 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return _main(args, parser)
+    except (RunError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
 
+
+def _main(args, parser) -> int:
     exp = runs.resolve_experiment(args.experiment)
+    if args.preset not in exp.PRESETS:
+        raise RunError(f"unknown preset {args.preset!r}; available: {sorted(exp.PRESETS)}")
     config = exp.PRESETS[args.preset]
     data = bench.parse_data_spec(args.data)
     config = dataclasses.replace(
@@ -158,6 +174,12 @@ def main(argv=None) -> int:
     temps = _parse_floats(args.temperatures)
     results = []
     if args.run:  # score an existing run (its own data config) at its best checkpoint
+        flags = {"preset": "--preset", "data": "--data", "split": "--split",
+                 "steps": "--steps", "overrides": "--set"}  # fmt: skip
+        ignored = [flag for k, flag in flags.items() if getattr(args, k) != parser.get_default(k)]
+        if ignored:
+            print(f"warning: {', '.join(ignored)} ignored with --run: the run is scored on "
+                  "its own data and config", file=sys.stderr)  # fmt: skip
         run_path = runs.resolve_run_dir(args.run)  # a path or pretrained:NAME
         rows, nll, gt, refs, step = score(run_path, None, temps, windows=args.windows,
                                     seed=args.seed, sample_windows=args.sample_windows,
@@ -165,8 +187,7 @@ def main(argv=None) -> int:
         results = [{"steps": step, "train_s": None, "nll": nll, **row} for row in rows]
         for rec in results:
             print(json.dumps(rec), flush=True)
-        out.mkdir(parents=True, exist_ok=True)
-        write_report(out, results, gt, " ".join(sys.argv), refs)
+        _write(out, results, gt, refs)
         return 0
     dataset = config.data.load()
     truth = truth_and_references(dataset, args.on, args.sample_windows, float(config.data.fps))
@@ -177,7 +198,7 @@ def main(argv=None) -> int:
         train(exp, cfg, run_dir=run_dir, preset=args.preset, resume=resume, dataset=dataset,
               progress=False)  # fmt: skip
         train_s = time.perf_counter() - t0
-        rows, nll, gt, refs, _ = score(
+        rows, nll, gt, refs, scored = score(
             run_dir,
             dataset,
             temps,
@@ -187,16 +208,24 @@ def main(argv=None) -> int:
             split=args.on,
             truth=truth,
         )
+        if scored != steps:  # a run already past the milestone, or stopped early
+            print(f"warning: milestone {steps} scored the checkpoint of step {scored}",
+                  file=sys.stderr)  # fmt: skip
         for row in rows:
-            rec = {"steps": steps, "train_s": train_s, "nll": nll, **row}
+            rec = {"steps": scored, "milestone": steps, "train_s": train_s, "nll": nll, **row}
             results.append(rec)
             print(json.dumps(rec), flush=True)
+    _write(out, results, gt, refs)
+    return 0
+
+
+def _write(out: Path, results: list[dict], gt: dict, refs: dict | None) -> None:
+    """``OUT/quality.jsonl`` and the report (:func:`write_report`)."""
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "quality.jsonl", "w") as fh:
         for rec in results:
             fh.write(json.dumps(rec) + "\n")
     write_report(out, results, gt, " ".join(sys.argv), refs)
-    return 0
 
 
 COLUMNS = ("foot_sliding", "skate_ratio", "contact_rate", "bone_length_std", "jerk",

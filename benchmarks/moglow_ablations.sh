@@ -34,6 +34,6 @@ names=("$@")
 for name in "${names[@]}"; do
   [ -f "$out/moglow-quick-$name/QUALITY.md" ] && continue
   python benchmarks/model_quality.py moglow --preset quick --data bandai --split performer \
-    --steps 1600 --temperatures 1.0,0.8,0.6 --set ${SETS[$name]} \
+    --steps 1600 --temperatures 1.0,0.8,0.6 ${SETS[$name]:+--set ${SETS[$name]}} \
     --out "$out/moglow-quick-$name" > "$out/moglow-quick-$name.log" 2>&1
 done

@@ -1,5 +1,6 @@
 """The ``motionflows`` command: the train -> eval -> sample -> runs path and clear errors."""
 
+import os
 import subprocess
 import sys
 import types
@@ -274,6 +275,24 @@ def test_render_refuses_what_it_cannot_draw_right(tmp_path, capsys, fake_data):
         code, _, err = _run(capsys, "render", tmp_path / argv[0], *argv[1:], *out)
         assert code == 2 and needle in err and "Traceback" not in err, (argv, err)
     assert _run(capsys, "render", tmp_path / "at30.npz", "--fps", "30", *out)[0] == 0
+
+
+def test_the_ablation_script_passes_each_runs_settings(tmp_path):
+    """benchmarks/moglow_ablations.sh gave the unchanged preset (`all`, no settings) a bare
+    `--set` that argparse refused, stopping the script at its first run."""
+    fake = tmp_path / "bin" / "python"
+    fake.parent.mkdir()
+    fake.write_text('#!/bin/sh\necho "$@" >> "$CALLS"\n')
+    fake.chmod(0o755)
+    env = {**os.environ, "PATH": f"{fake.parent}:{os.environ['PATH']}",
+           "CALLS": str(tmp_path / "calls")}  # fmt: skip
+    script = ROOT / "benchmarks" / "moglow_ablations.sh"
+    out = tmp_path / "q"
+    out.mkdir()
+    subprocess.run(["bash", script, out, "all", "res-K8"], env=env, cwd=ROOT, check=True)
+    calls = (tmp_path / "calls").read_text().splitlines()
+    assert len(calls) == 2 and "--set" not in calls[0].split()
+    assert "--set residual=true K=8 --out" in calls[1]
 
 
 @pytest.mark.parametrize(

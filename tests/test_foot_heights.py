@@ -41,3 +41,13 @@ def test_strides_are_timed_on_the_walking_windows_only(benchmark_script):
     speed = walk.control[:, 0].mean() * walk.fps
     assert abs(row["length_m"] - speed * row["period_s"]) < 0.01
     assert 0.7 < row["period_s"] < 1.1  # the synthetic walk's cadence at 1.2 m/s
+
+
+def test_moved_is_the_length_of_a_joints_move(benchmark_script):
+    """``moved_cm`` took the largest single coordinate change (3 cm for a (3, 0, 4) cm move)
+    and called it the largest joint move."""
+    fh = benchmark_script("foot_heights")
+    sample = np.zeros((1, 2, 63))
+    locked = sample.copy()
+    locked[0, 1, 9:12] = [0.03, 0.0, 0.04]  # joint 3 moved 5 cm in frame 1
+    assert fh.moved_cm(locked, sample) == {"p50": 2.5, "p99": 4.95, "max": 5.0}

@@ -231,6 +231,31 @@ def test_model_quality_labels_its_rows_with_the_step_it_scored(
     # the bench's two rows of real training motion beside the ground truth, scored alike
     assert "| *training takes (own controls)* | |" in report
     assert "| *nearest training window (test controls)* | |" in report
+    assert (tmp_path / "quality" / "quality.jsonl").is_file()  # as the docstring says
+    # flags that --run does not use are named, not silently dropped; bad input is one line
+    assert script.main([*argv, "--preset", "cpu"]) == 0
+    assert "--preset ignored with --run" in capsys.readouterr().err
+    for bad in (["moglow", "--run", str(tmp_path / "none"), "--out", "x"],
+                ["moglow", "--preset", "huge", "--out", "x"]):  # fmt: skip
+        assert script.main(bad) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and "Traceback" not in err
+
+
+def test_model_quality_labels_a_passed_milestone_with_the_step_it_scored(
+    benchmark_script, tmp_path, capsys
+):
+    """A milestone the run has already passed scored its newest checkpoint under the
+    milestone's label (a resumed curve then showed step 10's model as step 5's)."""
+    script = benchmark_script("model_quality")
+    argv = ["moglow", "--preset", "smoke", "--data", "synthetic", "--split", "take",
+            "--steps", "10,5", "--temperatures", "1.0", "--windows", "4",
+            "--sample-windows", "4", "--out", str(tmp_path / "q")]  # fmt: skip
+    assert script.main(argv) == 0
+    captured = capsys.readouterr()
+    rows = [json.loads(line) for line in captured.out.splitlines() if line.startswith("{")]
+    assert [(r["milestone"], r["steps"]) for r in rows] == [(10, 10), (5, 10)]
+    assert "milestone 5 scored the checkpoint of step 10" in captured.err
 
 
 def test_sample_into_a_shared_out_keeps_every_runs_file(exported, tmp_path, capsys):
