@@ -18,11 +18,11 @@ preset, split by performer; ``--steps``, ``--seed`` and ``--set`` change it) wit
 contact channels into ``OUT/run`` (resumed if it is there), then scores it and every
 ``--baseline`` run (the same preset without contacts: the bench's own runs) as the bench
 scores: 256 complete windows of the unseen performer's takes (``pick(test, 256, seed=2)``),
-one temperature for all (0.8), latents from ``fold_in(key(0), 20)``, diversity from 16
-samples of the first control, ground truth beside. Motion only: each run's validation NLL
-is in its ``metrics.jsonl`` (the oracle's conditioned on the true contacts, so a measure
-of what they tell the model, not a likelihood comparable with the baselines'). Writes
-``OUT/contact_oracle.json``; a table goes to stdout.
+one temperature for all (0.8), latents from ``fold_in(key(0), 20)``, diversity from the
+budget's samples of the first control (32 at `cpu`), ground truth beside. Motion only:
+each run's validation NLL is in its ``metrics.jsonl`` (the oracle's conditioned on the true
+contacts, so a measure of what they tell the model, not a likelihood comparable with the
+baselines'). Writes ``OUT/contact_oracle.json``; a table goes to stdout.
 """
 
 from __future__ import annotations
@@ -45,8 +45,10 @@ from motionflows.bench.budgets import BUDGET_SIZES, bench_config, parse_data_spe
 from motionflows.cli_train import add_set_argument
 from motionflows.config import apply_overrides
 from motionflows.data.names import CONTROL_DIM
+from motionflows.errors import RunError
 from motionflows.evaluation.motion import foot_contacts, foot_speeds
 from motionflows.run import load_standardizer, restore_run
+from motionflows.runs import resolve_run_dir
 from motionflows.training import train
 from motionflows.windows import pick
 
@@ -157,6 +159,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    for run in args.baseline:  # before the training: a typo must not cost an hour
+        try:
+            resolve_run_dir(run)
+        except RunError as err:
+            print(f"error: --baseline {err}", file=sys.stderr)
+            return 2
 
     out = Path(args.out)
     data = parse_data_spec("bandai", "cpu")
@@ -191,7 +199,7 @@ def main(argv=None) -> int:
         "ground_truth": {k: gt.get(k) for k in METRICS},
         "runs": [],
     }
-    for run in [run_dir, *map(Path, args.baseline)]:
+    for run in [run_dir, *map(resolve_run_dir, args.baseline)]:
         row = score(run, test, idx, fps, temperature=args.temperature, sizes=sizes)
         result["runs"].append(row)
         print(json.dumps({k: row.get(k) for k in ("run", "step", "control_dim", *METRICS)}),

@@ -12,8 +12,8 @@ poses of Bandai takes, cut into 4 s windows at 20 fps, placed on
 * the window's mean control (a control without the gait cycle),
 
 for each root smoothing ``sigma`` (seconds), with the calibrated contact rule of
-:func:`motionflows.evaluation.motion.foot_sliding`. Prints a JSON line naming the takes,
-the machine and its load, then one JSON object per sigma. Used for
+:func:`motionflows.evaluation.motion.foot_sliding`. Prints a JSON line with the number of
+takes, the machine and its load, then one JSON object per sigma. Used for
 docs/readme/moglow_quality.md (the sliding study)::
 
     python benchmarks/control_phase_sliding.py                      # the unseen performer D2-C
@@ -82,13 +82,21 @@ def main(argv=None) -> int:
     parser.add_argument("--shifts", default="2,5,10", help="control shifts in frames")
     parser.add_argument("--every", type=int, default=1, help="use every n-th take (speed)")
     args = parser.parse_args(argv)
+    try:
+        shifts = [int(k) for k in args.shifts.split(",")]
+    except ValueError:
+        shifts = []
+    if args.every < 1 or not shifts or min(shifts) < 1:
+        parser.error(
+            f"--every must be >= 1 and --shifts whole frames >= 1, comma-separated; got "
+            f"{args.every}, {args.shifts!r}"
+        )
     files = sorted({f for g in (args.takes or DEFAULT_TAKES) for f in glob.glob(g)})[:: args.every]
     if not files:
         wanted = args.takes or list(DEFAULT_TAKES)
         hint = "pass --takes 'DIR/*.bvh' (the Bandai set: motionflows data download bandai)"
         print(f"error: no BVH take matches {wanted}; {hint}", file=sys.stderr)
         return 2
-    shifts = [int(k) for k in args.shifts.split(",")]
     print(json.dumps({"takes": len(files), "fps": FPS, "window": WINDOW, "hop": HOP,
                       "machine": platform.processor() or platform.machine(),
                       "load_average": os.getloadavg()[0]}), flush=True)  # fmt: skip

@@ -75,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="small weights (a smoke test only)")
     p.add_argument("--repeats", type=int, default=15)
     args = p.parse_args(argv)
+    if args.repeats < 1:
+        p.error(f"--repeats must be >= 1, got {args.repeats}")
     K, n_in, n_out = (2, 256, 512) if args.quick else (16, 1206, 2048)
     machine = roofline.machine()
     rng = np.random.default_rng(0)

@@ -196,8 +196,10 @@ def main(argv=None) -> int:
     dtypes = [d.strip() for d in args.dtypes.split(",")]
     if not dtypes or any(d not in ("float32", "bfloat16") for d in dtypes):
         ap.error(f"--dtypes takes float32 and/or bfloat16, comma-separated; got {args.dtypes!r}")
+    if args.repeats is not None and args.repeats < 1:
+        ap.error(f"--repeats must be >= 1 (timed steps), got {args.repeats}")
     cfg = QUICK if args.quick else PAPER
-    repeats = args.repeats or (5 if args.quick else 2)
+    repeats = (5 if args.quick else 2) if args.repeats is None else args.repeats
     out = {
         "benchmark": "glow_fixed_speed",
         "config": {**cfg, "pose_dim": POSE_DIM, "control_dim": CONTROL_DIM},

@@ -110,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.samples < 1 or not args.block > 0 or not args.seconds > 0:
+        p.error(
+            f"--samples must be >= 1 and --block and --seconds > 0, got {args.samples}, "
+            f"{args.block:g}, {args.seconds:g}"
+        )
     try:
         spans_s = None if args.spans is None else _parse_spans(args.spans, args.seconds)
     except ValueError as e:
@@ -129,7 +134,11 @@ def main(argv: list[str] | None = None) -> int:
             )
             return 2
         fps = model.fps
-        control = load_control(args.control, seconds=args.seconds, fps=fps)
+        try:
+            control = load_control(args.control, seconds=args.seconds, fps=fps)
+        except (ValueError, OSError) as e:
+            print(f"long_run_drift: --control {args.control!r}: {e}", file=sys.stderr)
+            return 2
         control = np.repeat(control[None], args.samples, 0)
         temperature = model.temperature if args.temperature is None else args.temperature
         try:
@@ -142,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             pose,
             control,
             fps=fps,
-            block=round(args.block * fps),
+            block=max(1, round(args.block * fps)),
             reference=round(fps),
             spans=spans,
         )

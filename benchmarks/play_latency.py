@@ -152,10 +152,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="a quick-preset-size model")
     parser.add_argument("--presses", type=int, default=30, help="control changes to time")
     args = parser.parse_args(argv)
+    if args.presses < 1:
+        parser.error(f"--presses must be >= 1, got {args.presses}")
+    if args.run and args.quick:
+        parser.error("--quick sizes the untrained model; a run has its own size: drop one")
     if args.run:
+        from motionflows.errors import RunError
         from motionflows.play import load_character
 
-        character = load_character(args.run, temperature=1.0)
+        try:
+            character = load_character(args.run, temperature=1.0)
+        except RunError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
         model = {"run": args.run}
     else:
         character, model = paper_size_character(args.quick)

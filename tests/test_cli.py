@@ -336,3 +336,32 @@ def test_runs_table_best_is_the_lowest_finite_validation():
             {"step": 30, "val_nll": -4.0}, {"step": 40, "loss": 1.0}]  # fmt: skip
     assert best_val(rows) == (-5.0, 20)
     assert best_val([{"step": 10, "val_nll": float("inf")}]) == (None, None)
+
+
+@pytest.mark.parametrize(
+    "script, argv",
+    [
+        ("play_latency", ["--presses", "0"]),  # was a median of nothing
+        ("play_latency", ["pretrained:moglow-bandai", "--quick"]),  # --quick was ignored
+        ("long_run_drift", ["pretrained:moglow-bandai", "--block", "0"]),
+        ("control_phase_sliding", ["--every", "0"]),  # was "slice step cannot be zero"
+        ("control_phase_sliding", ["--shifts", "-2"]),
+    ],
+)
+def test_measurement_scripts_refuse_settings_that_measure_nothing(
+    benchmark_script, script, argv, capsys
+):
+    with pytest.raises(SystemExit) as exit_info:
+        benchmark_script(script).main(argv)
+    assert exit_info.value.code == 2 and "Traceback" not in capsys.readouterr().err
+
+
+def test_measurement_scripts_name_a_missing_run_in_one_line(benchmark_script, tmp_path, capsys):
+    for script, argv in [
+        ("play_latency", [str(tmp_path / "none")]),
+        ("long_run_drift", ["pretrained:moglow-bandai", "--control", "moonwalk"]),
+        ("contact_oracle", ["--out", str(tmp_path / "o"), "--baseline", str(tmp_path / "no")]),
+    ]:
+        assert benchmark_script(script).main(argv) == 2, script
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err

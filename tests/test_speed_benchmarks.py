@@ -178,3 +178,19 @@ def test_gpu_speed_script_parses_and_asks_for_its_output_folder():
     assert subprocess.run(["bash", "-n", str(script)], capture_output=True).returncode == 0
     proc = subprocess.run(["bash", str(script)], capture_output=True, text=True, timeout=30)
     assert proc.returncode != 0 and "usage: benchmarks/gpu_speed.sh OUTDIR" in proc.stderr
+
+
+@pytest.mark.parametrize(
+    "script, argv",
+    [
+        ("moglow_speed", ["--repeats", "0"]),  # was the default, silently
+        ("moglow_speed", ["--repeats", "-1"]),  # was a StatisticsError after the peaks
+        ("moglow_speed", ["--warmup", "-1"]),
+        ("glow_fixed_speed", ["--repeats", "0"]),
+        ("gemv_layout", ["--repeats", "0"]),  # was min() of an empty sequence
+    ],
+)
+def test_speed_scripts_refuse_a_count_that_times_nothing(benchmark_script, script, argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        benchmark_script(script).main(["--quick", *argv])
+    assert exit_info.value.code == 2 and "must be >=" in capsys.readouterr().err
