@@ -14,9 +14,6 @@ from typing import Any
 import jax
 
 PERSISTENT_CACHE_ENV = "MOTIONFLOWS_COMPILE_CACHE"
-PERSISTENT_CACHE_MAX_BYTES = 4 * 2**30
-"""The persistent cache's size limit: beyond it JAX deletes the least recently used entries
-(without one, every configuration and shape a bench or test run compiles stays forever)."""
 
 _CACHE: dict = {}
 _SIZE = 16
@@ -50,8 +47,10 @@ def use_persistent_cache() -> str | None:
     Every compilation is kept, also the sub-second ones of data initialisation, so a
     repeated ``train`` of the same configuration skips XLA (a 300-step quick MoGlow: 48 s ->
     33-38 s, docs/readme/speed.md). Results are identical: only compiled code is cached.
-    At most :data:`PERSISTENT_CACHE_MAX_BYTES` (4 GiB) are kept, the least recently used
-    entries deleted first.
+    The folder grows with every configuration and shape compiled (a few MB for the tests
+    and presets) and can be deleted at any time. It has no size limit: JAX's
+    (``jax_compilation_cache_max_size``) needs the ``filelock`` package and, with it, fails
+    on every entry a cache without the limit wrote (a warning per compilation).
     """
     choice = os.environ.get(PERSISTENT_CACHE_ENV, "").strip()
     if choice.lower() in ("0", "off", "false", "no") or os.environ.get("JAX_COMPILATION_CACHE_DIR"):
@@ -68,5 +67,4 @@ def use_persistent_cache() -> str | None:
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    jax.config.update("jax_compilation_cache_max_size", PERSISTENT_CACHE_MAX_BYTES)
     return str(folder)
