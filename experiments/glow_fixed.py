@@ -27,6 +27,7 @@ from motionflows.config import (
     Scope,
     TrainConfig,
     check_compute_dtype,
+    check_fields,
     matmul_dtype,
     smoke_train,
 )
@@ -76,12 +77,16 @@ class Config:
         if self.coupling not in COUPLINGS:
             raise ValueError(f"coupling must be one of {COUPLINGS}, got {self.coupling!r}")
         check_compute_dtype(self.compute_dtype)
-        if not (math.isfinite(self.coupling_eps) and 0.0 <= self.coupling_eps < 1.0):
-            raise ValueError(f"coupling_eps must be in [0, 1), got {self.coupling_eps}")
+        check_fields(self, MODEL_LIMITS)
         if not 0.0 < self.residual_decay <= 1.0:
             raise ValueError(f"residual_decay must be in (0, 1], got {self.residual_decay}")
         if self.residual_decay != 1.0 and not self.residual:
             raise ValueError("residual_decay needs residual=true (it shapes the change)")
+
+
+MODEL_LIMITS = {  # as cfg.check_fields reads them: (lowest, highest, lowest ok?, highest ok?)
+    "coupling_eps": (0.0, 1.0, True, False),
+}
 
 
 PRESETS: dict[str, Config] = {

@@ -98,8 +98,6 @@ class Config:
                 f"world_joints={self.world_joints!r} needs residual_world=True "
                 "(--set residual_world=true)"
             )
-        if not self.history_noise >= 0.0:
-            raise ValueError(f"history_noise must be >= 0, got {self.history_noise}")
         if not 0.0 <= self.own_history <= 1.0:
             raise ValueError(f"own_history must be in [0, 1], got {self.own_history}")
         if self.own_history_passes < 1:

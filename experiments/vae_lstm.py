@@ -107,7 +107,7 @@ MODEL_LIMITS = {  # as cfg.check_fields reads them: (lowest, highest, lowest ok?
             "elbo_samples",
         ),
         _WIDTH,
-    ),  # fmt: skip
+    ),
     "dropout": (0.0, 1.0, True, False),
     "l1_weight": (0.0, 1e6, True, True),
 }

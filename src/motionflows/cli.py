@@ -171,6 +171,7 @@ def _sample_stem(out: Path, stem: str, run_dir: Path, pose: np.ndarray) -> str:
 
 def cmd_sample(args) -> int:
     from motionflows import run, runs
+    from motionflows.config import SEED_RANGE
     from motionflows.pretrained.model import INFO_FILE, read_info
 
     run_dir = runs.resolve_run_dir(args.run_dir)
@@ -181,8 +182,9 @@ def cmd_sample(args) -> int:
             f"--num must be 1 .. {MAX_SAMPLES} and --seconds in (0, {MAX_SAMPLE_SECONDS:g}] "
             f"(got --num {args.num}, --seconds {args.seconds})"
         )
-    if not -(2**63) <= args.seed < 2**63:
-        raise RunError(f"--seed must be a 64-bit integer (|seed| < 2**63), got {args.seed}")
+    low, high = SEED_RANGE
+    if not low <= args.seed <= high:
+        raise RunError(f"--seed must be a 64-bit integer ({low} .. {high}), got {args.seed}")
     module, config, model, _ = run.load_run(run_dir, checkpoint=args.checkpoint, load_data=False)
     std = run.load_standardizer(run_dir)
     fps = float(config.data.fps)

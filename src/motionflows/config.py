@@ -213,6 +213,8 @@ DATA_LIMITS: dict[str, _Limit] = {
     "tempo": (0.1, 10.0, True, True),
     "train_fraction": (0.0, 1.0, False, True),
 }
+SEED_RANGE = (-(2**63), 2**63 - 1)
+"""The seeds ``jax.random.key`` takes (a 64-bit integer), both ends included."""
 TRAIN_LIMITS: dict[str, _Limit] = {
     "steps": (0, INF, True, True),
     "batch_size": (1, INF, True, True),
@@ -233,7 +235,7 @@ TRAIN_LIMITS: dict[str, _Limit] = {
     "min_lr_ratio": (0.0, 1.0, True, True),
     "val_batch_size": (1, INF, True, True),
     "ema_decay": (0.0, 1.0, False, False),
-    "seed": (-(2**63), 2**63 - 1, True, True),  # jax.random.key takes a 64-bit integer
+    "seed": (*SEED_RANGE, True, True),
 }
 
 

@@ -338,14 +338,12 @@ def _test_data(dataset, data_cfg: DataConfig, test_data: str | None, progress):
     shared = [name for name in names if str(name) in seen]
     note = f"every complete window of the takes of {test_data} (not the test split)"
     if shared:
-        note += (
-            f"; {len(shared)} of its {len(names)} takes are also training or validation takes "
-            f"of --data (e.g. {', '.join(map(str, shared[:3]))}): not held out"
-        )
+        which = f"{len(shared)} of its {len(names)} takes are also training or validation takes "
+        which += f"of --data (e.g. {', '.join(map(str, shared[:3]))})"
+        note += f"; {which}: not held out"
         warnings.warn(
-            f"--test-data {test_data}: {len(shared)} of its {len(names)} takes are training or "
-            f"validation takes of --data (e.g. {', '.join(map(str, shared[:3]))}), so their "
-            "scores are not held out; give takes the models never saw",
+            f"--test-data {test_data}: {which}, so their scores are not held out; give takes "
+            "the models never saw",
             stacklevel=2,
         )
     return dataset.with_test(takes.windows, test_data=str(test_data)), {
