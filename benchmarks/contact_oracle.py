@@ -159,12 +159,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    for run in args.baseline:  # before the training: a typo must not cost an hour
-        try:
-            resolve_run_dir(run)
-        except RunError as err:
-            print(f"error: --baseline {err}", file=sys.stderr)
-            return 2
+    try:  # before the training: a typo must not cost an hour
+        baselines = [resolve_run_dir(run) for run in args.baseline]
+    except RunError as err:
+        print(f"error: --baseline {err}", file=sys.stderr)
+        return 2
 
     out = Path(args.out)
     data = parse_data_spec("bandai", "cpu")
@@ -199,7 +198,7 @@ def main(argv=None) -> int:
         "ground_truth": {k: gt.get(k) for k in METRICS},
         "runs": [],
     }
-    for run in [run_dir, *map(resolve_run_dir, args.baseline)]:
+    for run in [run_dir, *baselines]:
         row = score(run, test, idx, fps, temperature=args.temperature, sizes=sizes)
         result["runs"].append(row)
         print(json.dumps({k: row.get(k) for k in ("run", "step", "control_dim", *METRICS)}),
