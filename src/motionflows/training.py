@@ -302,16 +302,16 @@ def check_steps(module, config, *, use_fit: bool = True) -> None:
         )
 
 
-def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, fitted=None):
-    """The closed-form fit, its validation and checkpoint; ``fitted()`` (a refit's run files)
-    is called once the fit and its validation have succeeded."""
+def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta, on_fitted=None):
+    """The closed-form fit, its validation and checkpoint; ``on_fitted()`` (a refit's run
+    files) is called once the fit and its validation have succeeded."""
     t0 = time.perf_counter()
     kwargs = {"config": config} if "config" in inspect.signature(module.fit).parameters else {}
     model = module.fit(model, dataset, **kwargs)
     seconds = time.perf_counter() - t0
     val = validate(module, config, model, dataset, key=keys["eval"], evaluate_fn=eval_fn)
-    if fitted is not None:
-        fitted()
+    if on_fitted is not None:
+        on_fitted()
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     meta = {**base_meta, "step": 0, "data_index": 0, "fit": True, **val}
     state = {"params": params, "rest": rest}
