@@ -362,6 +362,20 @@ def test_parameter_average_passes_updates_through_and_averages():
         parameter_average(1.0)
 
 
+@pytest.mark.standard_dtypes  # optax transforms called directly
+def test_parameter_average_after_one_update_is_that_update_exactly():
+    # the first rate (1 - d) / (1 - d^1) is 1: the average is p_1 itself, not p_1 plus a
+    # share of (p_1 - p_0) (it was 1.0000129 with 1 - d in float64 over 1 - d^n in float32)
+    for d in (0.999, 0.9999, 0.5):
+        opt = optax.chain(optax.sgd(1.0), parameter_average(d))
+        p = {"w": jnp.array([0.0, 3.0, -7.0])}
+        state = opt.init(p)
+        updates, state = opt.update({"w": jnp.array([-1000.0, 5e4, 0.25])}, state, p)
+        np.testing.assert_array_equal(
+            averaged_parameters(state)["w"], optax.apply_updates(p, updates)["w"]
+        )
+
+
 def test_resume_refuses_data_whose_standardiser_changed_and_keeps_the_saved_one(tmp_path):
     # the checkpoints are in the units of the standardiser the run started with: resuming on
     # data that standardises differently (takes added to the folder, another --data) would

@@ -115,8 +115,13 @@ def parameter_average(decay: float) -> optax.GradientTransformation:
             raise ValueError("parameter_average needs the parameters: update(g, s, params)")
         new = optax.apply_updates(params, updates)
         count = state.count + 1
-        rate = (1.0 - d) / (1.0 - jnp.float32(d) ** count.astype(jnp.float32))
-        average = jax.tree_util.tree_map(lambda a, p: a + rate * (p - a), state.average, new)
+        d32 = jnp.float32(d)  # one precision for both sides of the ratio
+        rate = jnp.where(count == 1, 1.0, (1 - d32) / (1 - d32 ** count.astype(jnp.float32)))
+        average = jax.tree_util.tree_map(
+            lambda a, p: (1 - rate) * a + rate * p,  # exactly p_1 after the first update
+            state.average,
+            new,
+        )
         return updates, ParameterAverageState(average, count)
 
     return optax.GradientTransformation(init, update)
