@@ -367,6 +367,15 @@ def main(argv=None) -> int:
     except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    n_devices = int(data_mesh().devices.size)
+    if cfg["batch"] % n_devices:  # before the peaks: the step would refuse it only after them
+        print(
+            f"error: the training step's batch of {cfg['batch']} windows does not split over "
+            f"the {n_devices} devices JAX sees; run on a device count that divides "
+            f"{cfg['batch']} (XLA_FLAGS=--xla_force_host_platform_device_count=N on the CPU)",
+            file=sys.stderr,
+        )
+        return 2
     out = {
         "benchmark": "moglow_speed",
         "config": {

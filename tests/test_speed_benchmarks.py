@@ -131,6 +131,22 @@ def test_matmul_flops_counts_every_scan_iteration_and_the_backward_pass():
     assert roofline.matmul_flops(jax.grad(f, argnums=1), x, w) == 3 * forward
 
 
+def test_matmul_flops_skips_the_products_whose_results_nothing_uses():
+    # precision.matmul's hand-written VJP also computes dx = g @ w^T; for data x nothing uses
+    # it and XLA drops it, so the floor must not count it (the bfloat16 MoGlow step's did)
+    from motionflows.nets.precision import matmul
+
+    x, w = jnp.ones((8, 16)), jnp.ones((16, 32))
+    forward = 2 * 8 * 16 * 32
+
+    def loss(w, x):
+        return jnp.tanh(matmul(x, w, "bfloat16")).sum()
+
+    assert roofline.matmul_flops(loss, w, x) == forward
+    assert roofline.matmul_flops(jax.grad(loss), w, x) == 2 * forward  # forward + dw
+    assert roofline.matmul_flops(jax.grad(loss, argnums=(0, 1)), w, x) == 3 * forward
+
+
 def test_floor_entry_takes_the_larger_bound():
     compute = roofline.floor_entry(
         2.0, flops=10.0, peak_flops_per_s=10.0, bytes_read=1.0, bandwidth_bytes_per_s=10.0
@@ -178,6 +194,22 @@ def test_gpu_speed_script_parses_and_asks_for_its_output_folder():
     assert subprocess.run(["bash", "-n", str(script)], capture_output=True).returncode == 0
     proc = subprocess.run(["bash", str(script)], capture_output=True, text=True, timeout=30)
     assert proc.returncode != 0 and "usage: benchmarks/gpu_speed.sh OUTDIR" in proc.stderr
+
+
+def test_moglow_speed_refuses_a_device_count_that_does_not_divide_its_batch():
+    # 3 simulated devices and the quick batch of 8: a raw ValueError after the peaks before
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "moglow_speed.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=3",
+             "JAX_PLATFORMS": "cpu"},  # fmt: skip
+        cwd=ROOT,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "batch of 8 windows" in proc.stderr and "3 devices" in proc.stderr
+    assert "Traceback" not in proc.stderr and proc.stdout == ""
 
 
 @pytest.mark.parametrize(
