@@ -90,6 +90,64 @@ def test_ramp_is_a_first_order_approach():
     np.testing.assert_allclose(applied, target * (1 - math.exp(-1)), rtol=1e-6)
 
 
+def test_a_diverged_frame_resets_the_character_but_keeps_the_recording():
+    """The engine restarts the character standing after a non-finite frame; the motion
+    played before it stays in ``/record.npz`` (it was emptied, losing a whole session's
+    recording to one bad frame), with the restart marked; a user's reset still empties it."""
+    import jax
+
+    from motionflows.models.moglow import MoGlow
+    from motionflows.play.character import Character
+    from motionflows.play.engine import Engine
+
+    class Units:
+        poison = False  # denormalize_pose gives NaN while set: a diverged frame
+
+        def normalize_control(self, c):
+            return np.asarray(c, np.float32)
+
+        def denormalize_pose(self, x):
+            x = np.asarray(x, np.float32)
+            return np.full_like(x, np.nan) if self.poison else x
+
+    units = Units()
+    model = MoGlow(63, 3, tau=2, K=1, hidden=8, rngs=jax.random.key(0))
+    character = Character(model, units, fps=20.0)
+    messages: list[dict] = []
+    engine = Engine(character, messages.append)
+    for _ in range(5):
+        engine._frame()
+    units.poison = True
+    engine._frame()
+    units.poison = False
+    for _ in range(2):
+        engine._frame()
+    errors = [m for m in messages if m["type"] == "error"]
+    assert len(errors) == 1 and "recording keeps" in errors[0]["message"]
+    record = character.recording()
+    assert record["pose"].shape == (7, 63) and record["control"].shape == (7, 3)
+    assert np.all(np.isfinite(record["pose"]))
+    np.testing.assert_array_equal(record["resets"], [5])
+    assert character.t == 2  # restarted: frame 0, 1 of the new episode
+    character.reset()  # the user's reset: a new, empty recording
+    record = character.recording()
+    assert record["pose"].shape == (0, 63) and record["resets"].shape == (0,)
+    # beyond the recording's limit the oldest frames go, and the marks follow them
+    import motionflows.play.character as character_module
+
+    limit, character_module.MAX_RECORD_FRAMES = character_module.MAX_RECORD_FRAMES, 4
+    try:
+        character.reset()
+        for poison in (False, False, False, True, False, False, False):
+            units.poison = poison
+            engine._frame()
+    finally:
+        character_module.MAX_RECORD_FRAMES = limit
+    record = character.recording()
+    assert record["pose"].shape == (4, 63)  # frames 2..5 of the 6 played
+    np.testing.assert_array_equal(record["resets"], [1])  # the restart after frame 3
+
+
 def test_cli_play_reports_bad_input_in_one_line(capsys):
     from motionflows.cli import main
 

@@ -113,9 +113,11 @@ class Character:
         self.episode = -1
         self.reset()
 
-    def reset(self) -> None:
+    def reset(self, *, keep_recording: bool = False) -> None:
         """Back to standing at the origin facing +z: fresh model state, zero control,
-        a new latent key and an empty recording."""
+        a new latent key and an empty recording, or with ``keep_recording`` (the engine's
+        reset after a diverged frame) the recording so far, the restart marked in its
+        ``resets``."""
         self.episode += 1
         self.state = self.model.init_stream(1)
         self.key = jax.random.fold_in(self._base_key, self.episode)
@@ -126,9 +128,14 @@ class Character:
         if self.foot_lock is not None:
             self.foot_lock.reset()
         with self._lock:
+            if keep_recording:
+                self._resets.append(self._recorded)
+                return
             self._poses: deque = deque(maxlen=MAX_RECORD_FRAMES)
             self._drawn: deque = deque(maxlen=MAX_RECORD_FRAMES)
             self._controls: deque = deque(maxlen=MAX_RECORD_FRAMES)
+            self._recorded = 0  # frames appended since the recording began
+            self._resets: list[int] = []  # values of _recorded at each kept restart
 
     def warm_up(self) -> None:
         """Compile the step (a throwaway frame), so the first page gets frames at once."""
@@ -176,6 +183,7 @@ class Character:
             if self.foot_lock is not None:
                 self._drawn.append(drawn)
             self._controls.append(control)
+            self._recorded += 1
         self.position, self.yaw = advance(self.position, self.yaw, control)
         self.t += 1
         return frame
@@ -183,13 +191,17 @@ class Character:
     def recording(self) -> dict[str, np.ndarray]:
         """The frames since the last reset, at most the last :data:`MAX_RECORD_FRAMES`:
         ``pose`` (T, 63) root-frame metres and ``control`` (T, 3) m/frame, rad/frame (what
-        ``motionflows render`` reads), ``fps``; under ``foot_lock`` ``pose`` is the shown
-        (locked) one and ``pose_drawn`` the model's."""
+        ``motionflows render`` reads), ``fps``, ``resets`` (R,) the frames at which the
+        character restarted standing after a diverged frame (the recording keeps the motion
+        before it); under ``foot_lock`` ``pose`` is the shown (locked) one and
+        ``pose_drawn`` the model's."""
         with self._lock:
             pose = np.asarray(self._poses, np.float32).reshape(-1, POSE_DIM)
             drawn = np.asarray(self._drawn, np.float32).reshape(-1, POSE_DIM)
             control = np.asarray(self._controls, np.float32).reshape(-1, 3)
-        out = {"pose": pose, "control": control, "fps": np.float32(self.fps)}
+            dropped = self._recorded - len(self._poses)  # the oldest, beyond the limit
+            resets = np.array([r - dropped for r in self._resets if r > dropped], np.int64)
+        out = {"pose": pose, "control": control, "fps": np.float32(self.fps), "resets": resets}
         if self.foot_lock is not None:
             out["pose_drawn"] = drawn
         return out

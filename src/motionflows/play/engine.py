@@ -103,8 +103,14 @@ class Engine:
         try:
             frame = ch.step()
         except FloatingPointError as err:
-            ch.reset()
-            self.emit({"type": "error", "message": f"{err}; reset to standing"})
+            ch.reset(keep_recording=True)  # the motion before it stays downloadable
+            self.emit(
+                {
+                    "type": "error",
+                    "message": f"{err}; reset to standing (the recording keeps the motion "
+                    "before it)",
+                }
+            )
             return
         ms = 1e3 * (time.perf_counter() - start)
         self.model_ms = ms if self.model_ms == 0 else 0.9 * self.model_ms + 0.1 * ms
