@@ -207,7 +207,7 @@ def test_moglow_speed_refuses_a_device_count_that_does_not_divide_its_batch():
             **os.environ,
             "XLA_FLAGS": "--xla_force_host_platform_device_count=3",
             "JAX_PLATFORMS": "cpu",
-        },  # fmt: skip
+        },
         cwd=ROOT,
     )
     assert proc.returncode == 2, proc.stderr[-2000:]
