@@ -18,7 +18,9 @@ The training step is data-parallel over every device, as ``motionflows train`` r
 (:mod:`motionflows.sharding`: parameters replicated, the batch split): one device unless
 there are several GPUs or simulated CPU devices, e.g.
 ``XLA_FLAGS=--xla_force_host_platform_device_count=2`` (docs/readme/speed.md: on 2 CPU
-cores this runs the time loops of the two halves of the batch side by side). The step
+cores this runs the time loops of the two halves of the batch side by side). Its floor
+counts every accelerator's GEMM peak (N GPUs: N times the one measured, since 2026-12-07;
+simulated CPU devices share the cores the peak used: ``training_peak``). The step
 donates the parameters and the optimiser state, as the trainer's step does (since
 2026-12-05; before, the benchmark kept both, which raised its peak memory:
 docs/readme/speed.md).
@@ -229,6 +231,13 @@ def _time_streaming(res: dict, model, ctrl, key, floor: dict) -> None:
     )
 
 
+def training_peak(peak: float, devices: int, backend: str) -> float:
+    """The GEMM peak of the data-parallel training step: the measured peak is one device's,
+    so separate accelerators add theirs (``devices`` times it); simulated CPU devices share
+    the cores that the peak already used (the peak itself)."""
+    return peak * devices if backend != "cpu" else peak
+
+
 def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1) -> dict:
     """Time training, sampling and streaming at one conditioner precision."""
     cd = None if dtype == "float32" else dtype
@@ -246,12 +255,14 @@ def bench(cfg: dict, dtype: str, repeats: int, key, peaks: dict, warmup: int = 1
     mesh = data_mesh()  # as the trainer: data-parallel over every device (usually one)
     check_batch_size(cfg["batch"], mesh)
     res["train_devices"] = int(mesh.devices.size)
+    train_peak = training_peak(peak, res["train_devices"], jax.default_backend())
+    res["train_peak_flops_per_s"] = train_peak
     shard = batch_sharding(mesh)
     # a copy of the parameters for the donated step: the model keeps its own for sampling
     trained = jax.tree.map(jnp.copy, params)
     args = (*replicate((trained, opt_state), mesh), jax.device_put(pose, shard),
             jax.device_put(control, shard), k_drop)  # fmt: skip
-    _time_training(res, train_step, args, peak, repeats, warmup)
+    _time_training(res, train_step, args, train_peak, repeats, warmup)
     print(
         f"{dtype:>9} training step {res['train_step_s']:.4f} s (compile "
         f"{res['train_compile_s']:.1f} s); timing the samplers next",

@@ -90,6 +90,17 @@ def test_moglow_speed_trains_data_parallel_over_simulated_cpu_devices():
     res = out["results"][0]
     assert res["train_devices"] == 2 and res["train_step_s"] > 0
     assert "2 x cpu" in out["machine"]["devices"]
+    # the 2 simulated devices share the cores the measured peak used: the floor is its own
+    assert res["train_peak_flops_per_s"] == out["peaks"]["gemm"]["float32"]["flops_per_s"]
+
+
+def test_moglow_speed_training_floor_counts_every_accelerator(benchmark_script):
+    # the measured GEMM peak is one device's: 4 GPUs train data-parallel at 4 times it (the
+    # floor of a multi-GPU step was one GPU's, its multiple 4x too high)
+    training_peak = benchmark_script("moglow_speed").training_peak
+    assert training_peak(100.0, 4, "gpu") == 400.0
+    assert training_peak(100.0, 1, "gpu") == 100.0
+    assert training_peak(100.0, 4, "cpu") == 100.0  # simulated devices share the cores
 
 
 def test_moglow_speed_step_donates_its_state_as_the_trainer_does(monkeypatch):
