@@ -378,11 +378,13 @@ def main(argv=None) -> int:
     except RunError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    n_devices = int(data_mesh().devices.size)
-    if cfg["batch"] % n_devices:  # before the peaks: the step would refuse it only after them
+    mesh = data_mesh()
+    try:  # before the peaks: bench() would refuse it only after them
+        check_batch_size(cfg["batch"], mesh)
+    except ValueError:  # its fix (--set train.batch_size) is the trainer's, not this script's
         print(
             f"error: the training step's batch of {cfg['batch']} windows does not split over "
-            f"the {n_devices} devices JAX sees; run on a device count that divides "
+            f"the {mesh.devices.size} devices JAX sees; run on a device count that divides "
             f"{cfg['batch']} (XLA_FLAGS=--xla_force_host_platform_device_count=N on the CPU)",
             file=sys.stderr,
         )
