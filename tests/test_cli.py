@@ -277,6 +277,28 @@ def test_render_refuses_what_it_cannot_draw_right(tmp_path, capsys, fake_data):
     assert _run(capsys, "render", tmp_path / "at30.npz", "--fps", "30", *out)[0] == 0
 
 
+def test_render_says_where_a_play_recording_restarts(tmp_path, capsys, fake_data):
+    """A `motionflows play` recording keeps the motion across a restart after a diverged
+    frame (its ``resets``); the GIF jumps there to a standing pose. `render` named nothing,
+    so the jump looked like the model's; it now says at which frames and seconds the
+    character restarted, and refuses a ``resets`` that is not frame indices of the take."""
+    pose = np.tile(fake_data.standardizer.pose_mean, (4, 1))
+    control = np.full((4, 3), 0.05, np.float32)
+    np.savez(tmp_path / "rec.npz", pose=pose, control=control, fps=20.0, resets=[2])
+    np.savez(tmp_path / "calm.npz", pose=pose, control=control, fps=20.0, resets=[])
+    np.savez(tmp_path / "bad.npz", pose=pose, control=control, resets=[7])
+    np.savez(tmp_path / "frac.npz", pose=pose, control=control, resets=[1.5])
+    out = ["--out", tmp_path / "r"]
+    code, _, err = _run(capsys, "render", tmp_path / "rec.npz", *out)
+    assert code == 0, err
+    assert "restarted standing at frame 2 (0.10 s)" in err, err
+    code, _, err = _run(capsys, "render", tmp_path / "calm.npz", *out)
+    assert code == 0 and "restarted" not in err, err
+    for name in ("bad.npz", "frac.npz"):
+        code, _, err = _run(capsys, "render", tmp_path / name, *out)
+        assert code == 2 and "'resets' must be" in err and "Traceback" not in err, err
+
+
 def test_the_ablation_script_passes_each_runs_settings(tmp_path):
     """benchmarks/moglow_ablations.sh gave the unchanged preset (`all`, no settings) a bare
     `--set` that argparse refused, stopping the script at its first run."""

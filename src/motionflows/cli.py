@@ -314,7 +314,7 @@ def cmd_render(args) -> int:
         return 0
     if path.suffix.lower() != ".npz":
         raise RunError(f"{path}: render reads .bvh or .npz files")
-    pose, control, fps = _read_motion_npz(path, args.fps)
+    pose, control, fps, resets = _read_motion_npz(path, args.fps)
     poses = pose[None] if pose.ndim == 2 else pose
     if (
         poses.ndim != 3
@@ -335,6 +335,8 @@ def cmd_render(args) -> int:
                 f"{path}: '{name}' must hold finite real numbers (it has NaN, inf, complex "
                 "numbers or text)"
             )
+    if resets is not None:
+        resets = _frame_indices(resets, poses.shape[1], f"{path}: 'resets'")
     controls = (
         control if control.ndim == 3 else np.broadcast_to(control, (len(poses), *control.shape))
     )
@@ -346,13 +348,38 @@ def cmd_render(args) -> int:
         print(f"wrote {gif}", file=sys.stderr)
     png = render.plot_controls(controls[0], out / f"{path.stem}_control.png", fps, title=path.stem)
     print(f"wrote {png}", file=sys.stderr)
+    if resets is not None and len(resets):
+        at = ", ".join(f"{r} ({r / fps:.2f} s)" for r in resets)
+        print(
+            f"note: the character restarted standing at frame{'s' * (len(resets) > 1)} {at} "
+            "after a diverged frame (motionflows play); the motion jumps there",
+            file=sys.stderr,
+        )
     return 0
 
 
-def _read_motion_npz(path: Path, fps_flag: float | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """``pose``, ``control`` and the frame rate of an .npz for ``render``: its own 0-d
-    ``fps`` array, else ``--fps`` (default 20); a ``--fps`` that disagrees with the file's is
-    refused (the file says at what rate its frames were made)."""
+def _frame_indices(values: np.ndarray, frames: int, name: str) -> np.ndarray:
+    """``values`` as a 1-D integer array of frame indices in [0, ``frames``), else RunError."""
+    whole = np.issubdtype(values.dtype, np.integer) or (
+        np.issubdtype(values.dtype, np.floating)
+        and np.all(np.isfinite(values))
+        and np.all(values == np.round(values))
+    )
+    if values.ndim != 1 or not whole or np.any(values < 0) or np.any(values >= frames):
+        raise RunError(
+            f"{name} must be frame indices in [0, {frames}) (the frames at which motionflows "
+            f"play restarted the character); got {values.tolist()}"
+        )
+    return values.astype(np.int64)
+
+
+def _read_motion_npz(
+    path: Path, fps_flag: float | None
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
+    """``pose``, ``control``, the frame rate and ``resets`` (None without one) of an .npz for
+    ``render``: the rate is its own 0-d ``fps`` array, else ``--fps`` (default 20); a
+    ``--fps`` that disagrees with the file's is refused (the file says at what rate its
+    frames were made). ``resets``: a ``motionflows play`` recording's restarts."""
     try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile):
@@ -366,6 +393,7 @@ def _read_motion_npz(path: Path, fps_flag: float | None) -> tuple[np.ndarray, np
             )
         pose, control = np.asarray(data["pose"]), np.asarray(data["control"])
         saved = np.asarray(data["fps"]) if "fps" in data else None
+        resets = np.asarray(data["resets"]) if "resets" in data else None
     if saved is None:
         fps = 20.0 if fps_flag is None else float(fps_flag)
     else:
@@ -379,7 +407,7 @@ def _read_motion_npz(path: Path, fps_flag: float | None) -> tuple[np.ndarray, np
             )
     if not (np.isfinite(fps) and 1 <= fps <= 1000):
         raise RunError(f"{path}: fps must be in [1, 1000], got {fps:g}")
-    return pose, control, fps
+    return pose, control, fps, resets
 
 
 def cmd_export(args) -> int:
