@@ -425,17 +425,20 @@ def test_set_changes_the_trained_configs_and_is_never_reused(smoke, tmp_path, ca
 
 def test_a_budgets_preset_keeps_its_training_augmentation():
     """The bench gives every model its frames, but a preset's training augmentation
-    (mirror, reverse, tempo) is part of what the budget trains: the `cpu` MoGlow trains
-    with its tempo, the `paper` MoGlow with time reversal, as `motionflows train` would."""
+    (mirror, reverse, tempo, its replays, the foot lock) is part of what the budget trains:
+    the `cpu` MoGlow trains with its tempo on foot-locked takes, the `paper` MoGlow with
+    time reversal, as `motionflows train` would."""
     import experiments.moglow as moglow
+    from motionflows.bench.budgets import AUGMENTATION_FIELDS
 
     data = bench.parse_data_spec("synthetic", "cpu")
     for budget, preset in (("cpu", "cpu"), ("full", "paper")):
         config, _ = bench.bench_config("moglow", budget, data)
         own = moglow.PRESETS[preset].data
-        kept = {f: getattr(own, f) for f in ("mirror", "reverse", "tempo")}
+        kept = {f: getattr(own, f) for f in AUGMENTATION_FIELDS}
         assert config.data == dataclasses.replace(data, **kept), budget
-    assert bench.bench_config("moglow", "cpu", data)[0].data.tempo != data.tempo
+    cpu = bench.bench_config("moglow", "cpu", data)[0].data
+    assert cpu.tempo != data.tempo and cpu.foot_lock and not data.foot_lock
     assert bench.bench_config("moglow", "full", data)[0].data.reverse != data.reverse
 
 

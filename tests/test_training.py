@@ -230,6 +230,22 @@ def test_noam_schedule_matches_the_official_rule():
         TrainConfig(schedule="linear")
 
 
+def test_a_final_learning_rate_ratio_the_schedule_does_not_use_warns():
+    """``train.min_lr_ratio`` sets where the cosine decay ends or the noam floor; the
+    ``constant`` schedule does not read it, and a ratio given there was silently not
+    applied. It now warns (a preset switched to constant by ``--set`` keeps its ratio, so
+    not an error) and the rate stays constant; a schedule that reads it does not warn."""
+    import warnings
+
+    with pytest.warns(UserWarning, match="min_lr_ratio=0.1 is not used"):
+        sched = learning_rate_schedule(TrainConfig(lr=0.5, steps=100, min_lr_ratio=0.1))
+    assert float(sched(99)) == 0.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        learning_rate_schedule(TrainConfig(lr=0.5, steps=100))
+        learning_rate_schedule(TrainConfig(lr=0.5, steps=100, schedule="cosine", min_lr_ratio=0.1))
+
+
 @pytest.mark.standard_dtypes  # optax transforms called directly
 def test_optimizer_clips_values_then_norm_and_warms_up():
     tc = TrainConfig(lr=1.0, clip_value=1.0, clip_norm=1.0, warmup_steps=4, optimizer="adam")

@@ -168,7 +168,7 @@ class TrainConfig:
     b1: float = 0.9
     b2: float = 0.999
     eps: float = 1e-8
-    min_lr_ratio: float = 0.0  # cosine: final lr = lr * min_lr_ratio; noam: the floor; constant: 0
+    min_lr_ratio: float = 0.0  # cosine: final lr = lr * min_lr_ratio; noam: the floor
     val_batch_size: int | None = None  # None = batch_size
     # Polyak averaging: the debiased exponential average of the iterates (decay d,
     # optim.parameter_average); validation, the checkpoints' "params" (sampling, eval,
@@ -183,12 +183,6 @@ class TrainConfig:
             )
         if self.optimizer not in ("adam", "adamw"):
             raise ValueError(f"train.optimizer must be 'adam' or 'adamw', got {self.optimizer!r}")
-        if self.schedule == "constant" and self.min_lr_ratio != 0:
-            raise ValueError(
-                f"train.min_lr_ratio={self.min_lr_ratio:g} has no effect with train.schedule "
-                "'constant' (it sets where 'cosine' ends and the 'noam' floor): set "
-                "train.min_lr_ratio=0, or train.schedule=cosine or noam"
-            )
 
 
 SMOKE_DATA: dict[str, Any] = dict(synthetic_clips=16, synthetic_seconds=6.0, window=32, hop=8)

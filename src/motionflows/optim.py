@@ -17,6 +17,7 @@ sync) when the loss, the gradient norm or the update is NaN/inf; the guard count
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, NamedTuple
 
 import jax
@@ -50,7 +51,9 @@ def noam_schedule(lr: float, warmup: int, minimum: float) -> optax.Schedule:
 def learning_rate_schedule(train: cfg.TrainConfig) -> optax.Schedule:
     """Linear warm-up from 0 over ``warmup_steps``, then constant or cosine decay to
     ``lr * min_lr_ratio`` at ``steps``; or ``"noam"`` (:func:`noam_schedule`, its own
-    warm-up over ``warmup_steps``, floor ``lr * min_lr_ratio``)."""
+    warm-up over ``warmup_steps``, floor ``lr * min_lr_ratio``). A ratio given to the
+    constant schedule, which does not use it, warns (a preset switched to ``constant`` by
+    ``--set`` keeps its ratio, so it is not an error)."""
     if train.schedule not in cfg.SCHEDULES:
         raise ValueError(
             f"train.schedule must be one of {', '.join(cfg.SCHEDULES)}, got {train.schedule!r}"
@@ -58,6 +61,14 @@ def learning_rate_schedule(train: cfg.TrainConfig) -> optax.Schedule:
     if train.schedule == "noam":
         return noam_schedule(train.lr, train.warmup_steps, train.lr * train.min_lr_ratio)
     if train.schedule == "constant":
+        if train.min_lr_ratio:
+            warnings.warn(
+                f"train.min_lr_ratio={train.min_lr_ratio:g} is not used: the 'constant' "
+                f"schedule keeps lr {train.lr:g} after its warm-up (the ratio sets where "
+                "'cosine' ends and the 'noam' floor)",
+                UserWarning,
+                stacklevel=2,
+            )
         after = optax.constant_schedule(train.lr)
     else:
         decay = max(1, train.steps - train.warmup_steps)
