@@ -230,7 +230,7 @@ def test_noam_schedule_matches_the_official_rule():
         TrainConfig(schedule="linear")
 
 
-def test_a_final_learning_rate_ratio_the_schedule_does_not_use_warns():
+def test_a_final_learning_rate_ratio_the_schedule_does_not_use_warns(tmp_path):
     """``train.min_lr_ratio`` sets where the cosine decay ends or the noam floor; the
     ``constant`` schedule does not read it, and a ratio given there was silently not
     applied. It now warns (a preset switched to constant by ``--set`` keeps its ratio, so
@@ -244,6 +244,14 @@ def test_a_final_learning_rate_ratio_the_schedule_does_not_use_warns():
         warnings.simplefilter("error")
         learning_rate_schedule(TrainConfig(lr=0.5, steps=100))
         learning_rate_schedule(TrainConfig(lr=0.5, steps=100, schedule="cosine", min_lr_ratio=0.1))
+    # a training run builds its schedule once: one warning, not one per place that reads it
+    config = dataclasses.replace(
+        CONFIG, train=dataclasses.replace(CONFIG.train, schedule="constant", min_lr_ratio=0.1)
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train(fake, config, run_dir=tmp_path / "run", dataset=FakeDataset(), progress=False)
+    assert sum("min_lr_ratio" in str(w.message) for w in caught) == 1
 
 
 @pytest.mark.standard_dtypes  # optax transforms called directly

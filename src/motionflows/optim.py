@@ -153,16 +153,20 @@ def averaged_parameters(opt_state: Any) -> Any | None:
     return found[0].average if found else None
 
 
-def make_optimizer(train: cfg.TrainConfig) -> optax.GradientTransformation:
+def make_optimizer(
+    train: cfg.TrainConfig, schedule: optax.Schedule | None = None
+) -> optax.GradientTransformation:
     """optax chain: [clip(clip_value)] -> [clip_by_global_norm(clip_norm)] -> adam / adamw
-    -> [parameter_average(ema_decay)].
+    -> [parameter_average(ema_decay)], at the learning rate ``schedule`` (by default
+    :func:`learning_rate_schedule` of ``train``; a caller that also logs the rate passes the
+    one it built).
 
     ``weight_decay`` w acts on every parameter. With "adam" it is an L2 penalty, as
     ``torch.optim.Adam``'s: w * p is added to the clipped gradient before Adam's moments.
     With "adamw" it is decoupled (Loshchilov & Hutter): p -= lr_t * w * p beside Adam's step.
     """
     parts = [gradient_clipping(train)]
-    lr = learning_rate_schedule(train)
+    lr = learning_rate_schedule(train) if schedule is None else schedule
     if train.optimizer == "adam":
         if train.weight_decay:
             parts.append(optax.add_decayed_weights(train.weight_decay))

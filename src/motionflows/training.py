@@ -375,8 +375,8 @@ class _Loop:
         self.tc = tc = config.train
         self.mesh = mesh
         check_batch_size(tc.batch_size, self.mesh)
-        self.optimizer = make_optimizer(tc)
         self.schedule = learning_rate_schedule(tc)
+        self.optimizer = make_optimizer(tc, self.schedule)
         self.start, self.best, self.guard = 0, None, init_guard()
         self.pending: list = []
         self.last_row: dict = {}
