@@ -210,7 +210,12 @@ PRESETS["preferred"] = dataclasses.replace(
 # each speed): on the unseen performer, two seeds, foot sliding 0.189 / 0.190 -> 0.147 /
 # 0.146 m/s, skate ratio 0.043 / 0.048 -> 0.026 / 0.025, jerk 1.50x / 1.45x -> 1.47x /
 # 1.48x, the same pose FD, for a contact rate of 0.38-0.39 (was 0.42) and 0-11 nats/frame
-# of window NLL (cpu_budget.md, "MoGlow on foot-locked takes with only the slower replays").
+# of window NLL (cpu_budget.md, "MoGlow on foot-locked takes with only the slower replays"),
+# and on those takes a history of tau = 3 frames (0.15 s): on the unseen performer, two
+# seeds each against tau 5, foot sliding 0.147 / 0.146 -> 0.153 / 0.135 m/s, contact rate
+# 0.375 / 0.388 -> 0.433 / 0.424, pose FD 0.048 / 0.049 -> 0.045 / 0.044, window NLL
+# -261.6 / -266.7 -> -269.4 / -269.3 nats/frame, the same jerk (1.49x / 1.47x), a quarter
+# fewer parameters and 4 % more training frames/s (cpu_budget.md, "With a history of tau = 3").
 PRESETS["cpu"] = dataclasses.replace(
     PRESETS["quick"],
     data=DataConfig(
@@ -225,7 +230,7 @@ PRESETS["cpu"] = dataclasses.replace(
         log_every=50,
         ema_decay=0.999,
     ),
-    tau=5,
+    tau=3,
     residual=True,
     history_noise=0.03,
     compute_dtype="float32",  # a CPU budget: the precision it was searched and shipped in
