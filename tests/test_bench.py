@@ -363,18 +363,24 @@ def test_a_run_saved_before_a_config_field_existed_is_still_reused(smoke, tmp_pa
 def test_a_run_trained_on_other_devices_is_not_reused(smoke, tmp_path):
     """Data-parallel training on N devices sums the batch in another order, so its run is
     another training, not this one: the bench reuses only a run trained on as many devices
-    as it has (a run saved before the count was recorded counts as one device)."""
+    as it has, in every segment of it (a run resumed on another count is neither; one saved
+    before the history was kept counts as its ``"devices"``, before the count as one)."""
     config, prov, run, old = _linear_ar_copy(smoke, tmp_path)
-    assert json.loads((run / "config.json").read_text())["devices"] == 1  # recorded
+    recorded = json.loads((run / "config.json").read_text())
+    assert recorded["devices"] == 1 and recorded["device_counts"] == [1]
     payload = json.loads((old / "config.json").read_text())
-    payload["devices"] = 4
-    (old / "config.json").write_text(json.dumps(payload))
-    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=1) is None
-    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=4) == old
-    del payload["devices"]
-    (old / "config.json").write_text(json.dumps(payload))
-    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=1) == old
-    assert bench.find_run(tmp_path / "runs", prov["experiment"], config, devices=4) is None
+
+    def reused_on(**saved):
+        rest = {k: v for k, v in payload.items() if k not in ("devices", "device_counts")}
+        (old / "config.json").write_text(json.dumps({**rest, **saved}))
+        runs = tmp_path / "runs"
+        return {n for n in (1, 4) if bench.find_run(runs, prov["experiment"], config, devices=n)}
+
+    assert reused_on(devices=4, device_counts=[4]) == {4}
+    assert reused_on(devices=1, device_counts=[1, 4]) == set()  # resumed on one device
+    assert reused_on(devices=1, device_counts=[1]) == {1}
+    assert reused_on(devices=4) == {4}
+    assert reused_on() == {1}
 
 
 def test_a_run_trained_on_other_data_is_not_reused(smoke, tmp_path):

@@ -298,6 +298,26 @@ def test_weight_decay_is_l2_with_adam_and_decoupled_with_adamw():
     )
 
 
+def test_a_resume_keeps_the_device_counts_of_the_earlier_segments(tmp_path):
+    """A run trained partly on 4 devices and resumed on one is not a one-device training:
+    its config.json keeps every count (the bench's reuse reads them), the latest as
+    ``devices``."""
+
+    def interrupt(step, out):
+        if step == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    run_dir, data = tmp_path / "run", FakeDataset()
+    train(fake, CONFIG, run_dir=run_dir, dataset=data, progress=False, on_step=interrupt)
+    saved = json.loads((run_dir / "config.json").read_text())
+    assert (saved["devices"], saved["device_counts"]) == (1, [1])
+    saved["devices"], saved["device_counts"] = 4, [4]  # as if its first segment ran on 4
+    (run_dir / "config.json").write_text(json.dumps(saved))
+    train(fake, CONFIG, run_dir=run_dir, dataset=data, progress=False, resume=True)
+    saved = json.loads((run_dir / "config.json").read_text())
+    assert (saved["devices"], saved["device_counts"]) == (1, [1, 4])
+
+
 def test_parameter_average_is_what_validation_checkpoints_and_resume_use(tmp_path):
     # train.ema_decay changes no training step, and the model a run gives (the returned
     # model, load_run, export) is the debiased exponential average of the iterates p_1..p_6

@@ -478,16 +478,34 @@ def _replace_paths(config: Any, changes: dict[tuple[str, ...], Any]) -> Any:
 
 
 def save_config(
-    path: Any, *, experiment: str, preset: str | None, config: Any, devices: int | None = None
+    path: Any,
+    *,
+    experiment: str,
+    preset: str | None,
+    config: Any,
+    devices: int | None = None,
+    device_counts: Any = (),
 ) -> None:
     """Write ``config.json``: ``{"experiment", "preset", "config"}`` (see :func:`load_config`),
-    and ``"devices"``, the number of devices the run trains data-parallel on, when given."""
+    and, when ``devices`` is given, ``"devices"``, the number of devices the run trains
+    data-parallel on now, and ``"device_counts"``, every count it has trained on (``devices``
+    with ``device_counts``, the earlier segments' counts of a resumed run), sorted."""
     from pathlib import Path
 
     payload = {"experiment": experiment, "preset": preset, "config": to_dict(config)}
     if devices is not None:
         payload["devices"] = int(devices)
+        payload["device_counts"] = sorted({int(devices), *map(int, device_counts)})
     Path(path).write_text(json.dumps(payload, indent=2) + "\n")
+
+
+def saved_device_counts(payload: dict) -> set[int]:
+    """Every device count a run's ``config.json`` payload says it trained on: its
+    ``"device_counts"``, else its ``"devices"`` (a run saved before the history was kept),
+    else 1 (a run saved before the count was recorded)."""
+    if "device_counts" in payload:
+        return {int(n) for n in payload["device_counts"]}
+    return {int(payload.get("devices", 1))}
 
 
 def read_config_json(path: Any) -> dict:

@@ -252,6 +252,11 @@ def train(
         _check_same_standardizer(run_dir, dataset.standardizer)
         _check_same_training(run_dir, tc)
     mesh = data_mesh() if mesh is None else mesh
+    # a resumed run keeps the device counts of its earlier segments: one trained partly on
+    # another count is another training (the bench reuses a run only on its own count)
+    earlier = (
+        cfg.saved_device_counts(cfg.read_config_json(run_dir / "config.json")) if resume else ()
+    )
 
     def write_run_files() -> None:
         if not _primary():  # the other processes of a multi-process run write nothing here
@@ -262,6 +267,7 @@ def train(
             preset=preset,
             config=config,
             devices=mesh.size,  # of its latest segment
+            device_counts=earlier,
         )
         payload = json.dumps(dataset.standardizer.to_dict(), indent=2) + "\n"
         (run_dir / "standardizer.json").write_text(payload)

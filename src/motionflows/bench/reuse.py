@@ -10,7 +10,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from motionflows.config import DataConfig, config_from_json, read_config_json, to_dict
+from motionflows.config import (
+    DataConfig,
+    config_from_json,
+    read_config_json,
+    saved_device_counts,
+    to_dict,
+)
 from motionflows.errors import RunError
 from motionflows.runs import MetricsWarning, read_metrics
 
@@ -58,9 +64,10 @@ def find_run(
     ``config`` (same data, model and training settings) but for ``sampling_fields`` (the
     experiment's ``SAMPLING_FIELDS``: fields that change how a trained model samples, not
     how it trains), else None. With ``devices``, only a run trained data-parallel on that
-    many devices (its ``config.json``'s ``"devices"``; 1 for a run saved before the count
-    was recorded): another count sums each batch in another order, so it is another
-    training, as another seed would be. With ``standardizer`` (called once, when a run
+    many devices in every segment (its ``config.json``'s ``"device_counts"``;
+    :func:`motionflows.config.saved_device_counts`): another count sums each batch in
+    another order, so a run trained on it, even for part of its steps after a resume, is
+    another training, as another seed would be. With ``standardizer`` (called once, when a run
     matches the config: the standardiser of the data ``config`` trains on, loaded now),
     only a run whose ``standardizer.json`` equals it: the same config on a folder whose
     takes changed is another training set."""
@@ -81,7 +88,7 @@ def find_run(
             continue
         if _without(saved_config, sampling_fields) != want:
             continue
-        if devices is not None and saved.get("devices", 1) != devices:
+        if devices is not None and saved_device_counts(saved) != {devices}:
             continue
         if run_finished(path.parent, steps):
             hits.append(path.parent)
