@@ -248,15 +248,15 @@ def train(
     if resume and not (run_dir / "config.json").is_file():
         raise RunError(f"cannot resume {run_dir}: it is not a run directory (no config.json)")
     dataset = config.data.load() if dataset is None else dataset
-    if resume:
-        _check_same_standardizer(run_dir, dataset.standardizer)
-        _check_same_training(run_dir, tc)
-    mesh = data_mesh() if mesh is None else mesh
     # a resumed run keeps the device counts of its earlier segments: one trained partly on
     # another count is another training (the bench reuses a run only on its own count)
-    earlier = (
-        cfg.saved_device_counts(cfg.read_config_json(run_dir / "config.json")) if resume else ()
-    )
+    earlier: Any = ()
+    if resume:
+        saved = cfg.read_config_json(run_dir / "config.json")
+        _check_same_standardizer(run_dir, dataset.standardizer)
+        _check_same_training(run_dir, saved, tc)
+        earlier = cfg.saved_device_counts(saved)
+    mesh = data_mesh() if mesh is None else mesh
 
     def write_run_files() -> None:
         if not _primary():  # the other processes of a multi-process run write nothing here
@@ -334,11 +334,12 @@ def _fit(module, config, model, dataset, run_dir, ckpt, eval_fn, keys, base_meta
     return TrainResult(model, run_dir, 0, "fitted", val["val_nll"], row)
 
 
-def _check_same_training(run_dir: Path, tc: cfg.TrainConfig) -> None:
+def _check_same_training(run_dir: Path, payload: dict, tc: cfg.TrainConfig) -> None:
     """RunError if a resume changes ``train.seed`` (the batches and keys of every step) or
     turns ``train.ema_decay`` on or off: the checkpoints' ``params`` are the average in a
-    run with it and the iterate in one without (another decay is fine: the same state)."""
-    saved = cfg.read_config_json(run_dir / "config.json")["config"].get("train", {})
+    run with it and the iterate in one without (another decay is fine: the same state).
+    ``payload``: the run's ``config.json`` (:func:`motionflows.config.read_config_json`)."""
+    saved = payload["config"].get("train", {})
     if "seed" in saved and saved["seed"] != tc.seed:
         raise RunError(
             f"{run_dir} was trained with train.seed={saved['seed']} and cannot resume with "
