@@ -215,9 +215,9 @@ PRESETS["preferred"] = dataclasses.replace(
 # seeds each against tau 5, foot sliding 0.147 / 0.146 -> 0.153 / 0.135 m/s, contact rate
 # 0.375 / 0.388 -> 0.433 / 0.424, pose FD 0.048 / 0.049 -> 0.045 / 0.044, window NLL
 # -261.6 / -266.7 -> -269.4 / -269.3 nats/frame, the same jerk (1.49x / 1.47x; a third
-# seed moved at 1.56x, outside the 1.5x target, with the same pose FD and contact rate),
-# a quarter fewer parameters and 4 % more training frames/s (cpu_budget.md, "With a
-# history of tau = 3").
+# seed moved at 1.56x, outside the 1.5x target, with the same pose FD and contact rate,
+# where three seeds of tau 5 stayed inside it: --set tau=5 for that), a quarter fewer
+# parameters and 4 % more training frames/s (cpu_budget.md, "With a history of tau = 3").
 PRESETS["cpu"] = dataclasses.replace(
     PRESETS["quick"],
     data=DataConfig(
