@@ -660,3 +660,18 @@ def test_test_data_sharing_training_takes_is_flagged(monkeypatch):
     config = {"source": "synthetic", "fps": 20.0, "window": 40, "hop": 10, "split_by": "take"}
     lines = report._data_section({"test_data": info, "data": {"config": config}})
     assert any("Not held out" in line for line in lines)
+
+
+def test_report_says_how_many_test_takes_no_frame_of_is_scored():
+    """A test take shorter than one window gives one padded window, which the bench does not
+    score: the report counts them and names the script that does; no note without them."""
+    from motionflows.bench import report
+
+    config = {"source": "bandai", "fps": 20.0, "window": 80, "hop": 10, "split_by": "performer"}
+    info = {"windows_test": 1153, "complete_windows_test": 1051}
+    text = "".join(report._data_section({"data": {"config": config, "info": info}}))
+    assert "102 test takes are shorter than one window" in text
+    assert "benchmarks/short_takes.py" in text
+    info = {"windows_test": 298, "complete_windows_test": 298}
+    text = "".join(report._data_section({"data": {"config": config, "info": info}}))
+    assert "shorter than one window" not in text

@@ -329,3 +329,38 @@ def test_foot_lock_changes_the_training_takes_only():
     from motionflows.bench.budgets import TRAINING_DATA_SETTABLE
 
     assert "data.foot_lock" in TRAINING_DATA_SETTABLE
+
+
+def test_short_repeat_repeats_the_padded_training_windows_only():
+    """``short_repeat`` = k: each window of a take shorter than the window is in the training
+    split k times, every complete window once; validation and test are as cut."""
+    from motionflows.data.datasets import repeat_padded
+    from motionflows.data.synthetic import straight_walk
+
+    long, short = straight_walk(1.2, seconds=4.0), straight_walk(2.4, seconds=1.5, seed=1)
+    short = dataclasses.replace(short, name="short")
+    windows, _ = make_windows([long, short], 40, 10, short="pad", min_frames=10)
+    padded = ~windows.valid.all(axis=1)
+    assert padded.sum() == 1 and len(windows) > 2
+    assert repeat_padded(windows, 1) is windows
+    tripled = repeat_padded(windows, 3)
+    assert len(tripled) == len(windows) + 2
+    np.testing.assert_array_equal(tripled.pose[: len(windows)], windows.pose)
+    for field in ("pose", "control", "valid", "start"):
+        extra = getattr(tripled, field)[len(windows) :]
+        np.testing.assert_array_equal(extra, np.repeat(getattr(windows, field)[padded], 2, 0))
+    assert list(tripled.take[len(windows) :]) == ["short", "short"]
+    with pytest.raises(ValueError, match="short_repeat"):
+        repeat_padded(windows, 0)
+    # through the config: 3 s takes in 4 s windows are all padded
+    config = DataConfig(synthetic_clips=12, synthetic_seconds=3.0, window=80, hop=10)
+    plain, twice = config.load(), dataclasses.replace(config, short_repeat=2).load()
+    assert len(twice.train) == 2 * len(plain.train)
+    for split in ("val", "test"):
+        np.testing.assert_array_equal(twice.split(split).pose, plain.split(split).pose)
+    assert twice.info["augment"]["short_repeat"] == 2 and "short takes x2" in twice.summary()
+    with pytest.raises(ValueError, match="short_repeat"):
+        DataConfig(short_repeat=0)
+    from motionflows.bench.budgets import TRAINING_DATA_SETTABLE
+
+    assert "data.short_repeat" in TRAINING_DATA_SETTABLE

@@ -98,6 +98,10 @@ class DataConfig:
     # a take shorter than the window: "pad" it with its last pose frozen (valid False
     # there; training sees the frozen tail, scoring uses complete windows only) or "drop" it
     short: str = "pad"
+    # each padded training window (a take shorter than the window: on Bandai, most runs)
+    # enters the training split this many times; a frame of a longer take is in about
+    # window / hop windows, a short take's in one (1 = as cut)
+    short_repeat: int = 1
 
     def __post_init__(self):
         check_fields(self, DATA_LIMITS)
@@ -137,6 +141,7 @@ class DataConfig:
             styles=self.styles,
             train_fraction=self.train_fraction,
             short=self.short,
+            short_repeat=self.short_repeat,
             foot_lock=self.foot_lock,
         )
 
@@ -212,6 +217,7 @@ DATA_LIMITS: dict[str, _Limit] = {
     "root_sigma_s": (0.0, 60.0, True, True),
     "tempo": (0.1, 10.0, True, True),
     "train_fraction": (0.0, 1.0, False, True),
+    "short_repeat": (1, INF, True, True),
 }
 SEED_RANGE = (-(2**63), 2**63 - 1)
 """The seeds ``jax.random.key`` takes (a 64-bit integer), both ends included."""

@@ -162,7 +162,14 @@ def check_overrides(names: Sequence[str], budget: str, data: DataConfig, overrid
         )
 
 
-AUGMENTATION_FIELDS: tuple[str, ...] = ("mirror", "reverse", "tempo", "tempo_replay", "foot_lock")
+AUGMENTATION_FIELDS: tuple[str, ...] = (
+    "mirror",
+    "reverse",
+    "tempo",
+    "tempo_replay",
+    "foot_lock",
+    "short_repeat",
+)
 """The :class:`~motionflows.config.DataConfig` fields that augment the training takes only,
 so a model may differ in them from the bench's data and still be validated and scored on
 the same frames: each preset keeps its own, and ``motionflows bench --set`` may change them."""

@@ -326,6 +326,19 @@ def _own_training_data(results: dict) -> str:
     return text
 
 
+def _short_takes_note(info: dict) -> str:
+    """The test takes no frame of which is scored (each shorter than one window, so its one
+    window is padded), and where they are scored; "" when there are none."""
+    short = int(info.get("windows_test", 0)) - int(info.get("complete_windows_test", 0))
+    if short <= 0:
+        return ""
+    return (
+        f" **{short} test takes are shorter than one window, so none of their frames is "
+        "scored here** (on Bandai: nearly all of them runs, which last 2-4 s): `python "
+        "benchmarks/short_takes.py RUN` scores their first frames with the same motion metrics."
+    )
+
+
 def _data_section(results: dict) -> list[str]:
     data = results["data"]
     cfg, info = data["config"], data.get("info", {})
@@ -339,7 +352,10 @@ def _data_section(results: dict) -> list[str]:
         f"{_split3(info.get('windows'))} (train with augmentation); complete (unpadded) "
         f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
         "trained on these takes and scored on the same test windows and controls; windows "
-        "padded past the end of a short take are not scored." + _own_training_data(results) + "\n",
+        "padded past the end of a short take are not scored."
+        + _short_takes_note(info)
+        + _own_training_data(results)
+        + "\n",
     ]
     test = results.get("test_data") or {}
     if test.get("spec"):

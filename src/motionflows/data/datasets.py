@@ -12,8 +12,8 @@ order) and val (``val_performers``; default: a take split of the remaining perfo
 ``train_fraction`` keeps that share of the training takes (for learning curves over data
 size; validation and test keep every take): see :func:`_train_share`.
 Augmentation (``mirror``, ``reverse``, ``tempo``: :mod:`motionflows.data.augment`) is
-applied to the training takes only; the standardiser is fitted on the augmented training
-windows.
+applied to the training takes only, and ``short_repeat`` repeats each padded training window
+(:func:`repeat_padded`); the standardiser is fitted on the augmented training windows.
 """
 
 from __future__ import annotations
@@ -205,6 +205,8 @@ class MotionDataset:
             kinds.append(f"tempo {aug['tempo']:g} {aug.get('tempo_replay', 'both')}")
         if aug.get("foot_lock"):
             kinds.append("feet locked")
+        if aug.get("short_repeat", 1) != 1:
+            kinds.append(f"short takes x{aug['short_repeat']}")
         train += f" -> {len(self.train)} windows ({', '.join(kinds) or 'as recorded'})"
         held = "; ".join(f"{s} {takes[s]} takes ({len(self.split(s))} windows)" for s in SPLITS[1:])
         return f"{info.get('source')}, split by {info.get('split_by')}: {train}; {held}"
@@ -355,9 +357,11 @@ def _split_windows(
     root_sigma_s: float = ROOT_SIGMA_S,
     tempo_replay: str = "both",
     foot_lock: bool = False,
+    short_repeat: int = 1,
 ) -> tuple[dict[str, WindowSet], dict[str, dict]]:
-    """The windows and window statistics of each split (training takes augmented first);
-    raise if the training split has no window."""
+    """The windows and window statistics of each split (training takes augmented first,
+    padded training windows repeated ``short_repeat`` times); raise if the training split
+    has no window."""
     splits, stats = {}, {}
     for s in SPLITS:
         cs = split_clips[s]
@@ -374,12 +378,39 @@ def _split_windows(
         splits[s], stats[s] = make_windows(
             cs, int(window), int(hop), short=short, min_frames=min_frames
         )
+        if s == "train":
+            splits[s] = repeat_padded(splits[s], short_repeat)
     if len(splits["train"]) == 0:
         raise MotionDataError(
             f"no training windows: the takes are shorter than window={window} frames; use a "
             "smaller window or short='pad'"
         )
     return splits, stats
+
+
+def repeat_padded(windows: WindowSet, times: int) -> WindowSet:
+    """``windows`` with each padded window (``valid`` not all True: a take shorter than
+    the window) ``times`` times, the copies after the windows as cut.
+
+    A frame of a take of n >= W frames is in about W / hop of its windows (8 for 80-frame
+    windows at hop 10), a shorter take's in its one padded window, so with ``times`` = 1
+    the short takes (on Bandai, the runs of most styles) weigh that much less per frame in
+    training; ``times`` > 1 evens that out. ``times`` = 1 returns ``windows`` itself."""
+    times = int(times)
+    if times < 1:
+        raise ValueError(f"short_repeat must be >= 1, got {times}")
+    padded = np.flatnonzero(~np.asarray(windows.valid).all(axis=1))
+    if times == 1 or len(padded) == 0:
+        return windows
+    extra = np.tile(padded, times - 1)
+    every = np.concatenate([np.arange(len(windows)), extra])
+    return WindowSet(
+        pose=windows.pose[every],
+        control=windows.control[every],
+        take=windows.take[every],
+        start=windows.start[every],
+        valid=windows.valid[every],
+    )
 
 
 def _style_name(clip: Clip) -> str | None:
@@ -498,6 +529,7 @@ def load_dataset(
     styles=None,
     train_fraction: float = 1.0,
     foot_lock: bool = False,
+    short_repeat: int = 1,
     **extra,
 ) -> MotionDataset:
     """Load a motion dataset (see the module docstring for sources and options).
@@ -539,6 +571,7 @@ def load_dataset(
         root_sigma_s,
         tempo_replay,
         foot_lock,
+        short_repeat,
     )
     dropped = [d for s in SPLITS for d in stats[s]["dropped_clips"]]
     _warn_dropped(dropped, window, short, min_frames)
@@ -560,6 +593,7 @@ def load_dataset(
             "tempo": float(tempo),
             "tempo_replay": tempo_replay,
             "foot_lock": bool(foot_lock),
+            "short_repeat": int(short_repeat),
         },
         **_split_info(split_clips, splits, stats, dropped),
         "seconds": sum(len(c) for c in clips) / float(fps),
