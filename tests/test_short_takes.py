@@ -54,3 +54,14 @@ def test_a_missing_run_is_one_message_and_exit_code_2(benchmark_script, tmp_path
     assert script.main([str(tmp_path / "nope"), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert "nope" in err and "Traceback" not in err
+
+
+def test_a_skip_that_leaves_too_few_frames_is_refused_before_any_run_loads(
+    benchmark_script, tmp_path, capsys
+):
+    script = benchmark_script("short_takes")
+    for skip in ("-1", "37"):
+        argv = [str(tmp_path / "nope"), "--frames", "40", "--skip", skip]
+        assert script.main([*argv, "--out", str(tmp_path)]) == 2
+        err = capsys.readouterr().err
+        assert "--skip" in err and "nope" not in err  # refused before the run is looked at

@@ -334,7 +334,7 @@ def _short_takes_note(info: dict) -> str:
         return ""
     return (
         f" **{short} test takes are shorter than one window, so none of their frames is "
-        "scored here** (on Bandai: nearly all of them runs, which last 2-4 s): `python "
+        "scored here** (on Bandai mostly runs, which last 2-4 s): `python "
         "benchmarks/short_takes.py RUN` scores their first frames with the same motion metrics."
     )
 
