@@ -108,6 +108,7 @@ def score_run(
         "complete_windows": complete_windows(part),
     }
     key = jax.random.key(seed)
+    samplers = [bench.make_sampler(exp, temp) for temp in temperatures]  # compiled once each
     out = []
     for r, name in enumerate(ROWS):
         idx = picked[name]
@@ -124,8 +125,7 @@ def score_run(
         gt.pop("prediction", None)
         out.append({**head, "temperature": None, **gt})
         control = np.asarray(dataset.standardizer.normalize_control(control_m), np.float32)
-        for t, temp in enumerate(temperatures):
-            sampler = bench.make_sampler(exp, temp)
+        for t, (temp, sampler) in enumerate(zip(temperatures, samplers, strict=True)):
             draws = bench.sample_in_chunks(
                 sampler, model, control, jax.random.fold_in(key, 10 * r + t)
             )
