@@ -75,6 +75,7 @@ class Config:
     own_history_passes: int = 1  # draws from drawn histories: up to this many frames deep
     own_history_temperature: float = 0.8  # temperature of those draws
     own_history_target: str = "pose"  # after a drawn history: the true "pose" or "change"
+    mask_padded: bool = False  # train on padded windows' real frames only (no frozen tail)
 
     def __post_init__(self):
         if self.K < 1 or self.hidden < 1 or self.layers < 1 or self.tau < 1:
@@ -300,6 +301,7 @@ def build(config: Config, *, key: jax.Array, control_dim: int = CONTROL_DIM) -> 
         own_history_passes=config.own_history_passes,
         own_history_temperature=config.own_history_temperature,
         own_history_target=config.own_history_target,
+        mask_padded=config.mask_padded,
         rngs=key,
     )
 
@@ -324,10 +326,18 @@ def initialize(model: MoGlow, batch: dict, *, key: jax.Array, standardizer=None)
 
 def loss(model: MoGlow, batch: dict, key: jax.Array):
     """Mean NLL per target frame (nats, standardised) with history dropout (and
-    ``own_history``, ``history_noise``) from ``key``."""
+    ``own_history``, ``history_noise``) from ``key``; with ``model.mask_padded`` the mean
+    over the target frames that ``batch["valid"]`` (B, T) marks real (a padded take's frozen
+    tail is not scored)."""
     pose = batch["pose"]
-    ll = model.log_prob(pose, batch["control"], key=key)
-    nll = -jnp.mean(ll) / model.num_targets(pose.shape[-2])
+    if model.mask_padded:
+        ll = model.log_prob(pose, batch["control"], key=key, per_frame=True)  # (B, T')
+        scored = batch["valid"][:, pose.shape[-2] - ll.shape[-1] :]
+        count = jnp.maximum(jnp.sum(scored, dtype=ll.dtype), 1.0)
+        nll = -jnp.sum(jnp.where(scored, ll, 0.0)) / count
+    else:
+        ll = model.log_prob(pose, batch["control"], key=key)
+        nll = -jnp.mean(ll) / model.num_targets(pose.shape[-2])
     return nll, {"nll_per_frame": nll, "bits_per_frame": nll / _LN2}
 
 

@@ -82,6 +82,9 @@ def test_batches_deterministic_and_resumable(ds):
     np.testing.assert_array_equal(b1["pose"], b2["pose"])
     assert b1["pose"].shape == (8, 40, 63) and b1["control"].shape == (8, 40, 3)
     assert b1["pose"].dtype == np.float32
+    assert b1["valid"].shape == (8, 40) and b1["valid"].dtype == bool  # rows of the windows':
+    ordered = ds.batch("train", 8, seed=3, index=0, shuffle=False)["valid"]
+    np.testing.assert_array_equal(ordered, ds.split("train").valid[:8])
     assert not np.array_equal(b1["pose"], ds.batch("train", 8, seed=4, index=5)["pose"])
     stream = list(ds.batches("train", 8, seed=3, epochs=2))
     per_epoch = len(ds.train) // 8

@@ -61,6 +61,54 @@ def test_own_history_reaches_the_model_and_the_loss():
             apply_overrides(base, [bad])
 
 
+def test_mask_padded_trains_on_the_real_frames_only():
+    """``mask_padded=true``: the loss and its gradient ignore a padded window's frozen tail
+    (whatever it holds) and are the per-frame NLL of the real target frames; windows with no
+    padding score as without the mask. Without the mask the tail is trained on."""
+    base = dataclasses.replace(exp.PRESETS["smoke"], data=DataConfig(window=10), tau=3)
+    masked_config = apply_overrides(base, ["mask_padded=true"])
+    model = exp.build(masked_config, key=jax.random.key(0))
+    assert model.mask_padded and not exp.build(base, key=jax.random.key(0)).mask_padded
+    kp, kc, kt = jax.random.split(jax.random.key(1), 3)
+    pose = jax.random.normal(kp, (4, 10, POSE_DIM))
+    control = jax.random.normal(kc, (4, 10, CONTROL_DIM))
+    valid = jnp.ones((4, 10), bool).at[1, 6:].set(False).at[3, 4:].set(False)
+    batch = {"pose": pose, "control": control, "valid": valid}
+    model = perturbed(exp.initialize(model, batch, key=jax.random.key(0)), jax.random.key(5))
+    other_tail = {
+        "pose": jnp.where(valid[..., None], pose, jax.random.normal(kt, pose.shape)),
+        "control": jnp.where(valid[..., None], control, 0.0),
+        "valid": valid,
+    }
+
+    def loss_and_grads(m, b):
+        (value, _), grads = nnx.value_and_grad(
+            lambda m: exp.loss(m, b, jax.random.key(2)), has_aux=True
+        )(m)
+        return value, jax.tree.leaves(grads)
+
+    value, grads = loss_and_grads(model, batch)
+    value2, grads2 = loss_and_grads(model, other_tail)
+    np.testing.assert_allclose(value2, value, rtol=1e-6)
+    for g, g2 in zip(grads, grads2, strict=True):
+        np.testing.assert_allclose(g2, g, rtol=1e-5, atol=1e-6)
+    # the mean over the 7 + 3 + 7 + 1 real target frames (frames 3..9) of the per-frame NLL
+    frames = model.log_prob(pose, control, key=jax.random.key(2), per_frame=True)
+    assert frames.shape == (4, 7)
+    real = jnp.where(valid[:, 3:], frames, 0.0)
+    np.testing.assert_allclose(-jnp.sum(real) / 18, value, rtol=1e-5)
+    whole = model.log_prob(pose, control, key=jax.random.key(2))
+    np.testing.assert_allclose(jnp.sum(frames, axis=1), whole, rtol=1e-5)
+    # no padding: the masked loss is the plain one; unmasked, the tail is trained on
+    plain = exp.build(base, key=jax.random.key(0))
+    nnx.update(plain, nnx.state(model))
+    full = {**batch, "valid": jnp.ones_like(valid)}
+    np.testing.assert_allclose(exp.loss(model, full, jax.random.key(2))[0],
+                               exp.loss(plain, full, jax.random.key(2))[0], rtol=1e-5)  # fmt: skip
+    assert not np.isclose(exp.loss(plain, batch, jax.random.key(2))[0],
+                          exp.loss(plain, other_tail, jax.random.key(2))[0])  # fmt: skip
+
+
 def test_protocol_functions():
     config = dataclasses.replace(
         exp.PRESETS["quick"], K=2, hidden=8, tau=3, data=DataConfig(window=8)

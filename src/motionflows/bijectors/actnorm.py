@@ -27,6 +27,8 @@ class ActNorm(Bijector):
     from data with :func:`initialize_from_data`; that never happens implicitly.
     """
 
+    frame_constant_log_det = True  # the same log-det on every frame
+
     def __init__(self, num_channels: int, *, rngs: nnx.Rngs | None = None):
         del rngs  # accepted for a uniform constructor signature; ActNorm draws nothing
         if int(num_channels) < 1:

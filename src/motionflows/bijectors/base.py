@@ -24,6 +24,12 @@ for every causal bijector. Stateless, per-frame bijectors inherit steps that run
 map on one frame and pass the carry through; ``Chain`` and ``Scan`` thread one carry per layer
 (``Chain``: a tuple in list order; ``Scan``: the steps' carries stacked on a leading K axis).
 
+Per frame, for bijectors that map each frame by itself or from earlier frames (every
+MoGlow layer; not ``Squeeze``, which mixes frames):
+``inverse_and_frame_log_det(x, *, context=None) -> (z, log|det| per frame (..., T))``, whose
+sum over T is ``inverse_and_log_det``'s log-det: what a loss that scores only some frames of
+a window (a padded take's real frames) needs.
+
 Data-dependent initialisation runs in an explicit "init mode" (see
 :func:`motionflows.bijectors.initialize_from_data`): while it is active, bijectors are run
 eagerly and layers with data-dependent parameters (``ActNorm``) set them from their input.
@@ -218,6 +224,26 @@ class Bijector(nnx.Module):
         """Data -> latent: returns (x, log|det dx/dy|) with log_det of the batch shape."""
         raise NotImplementedError
 
+    frame_constant_log_det: bool = False
+    """True where every frame contributes the same log-det (ActNorm, the 1x1 maps, permutations,
+    ``Difference``, additive couplings): the default :meth:`inverse_and_frame_log_det` then
+    spreads the sequence log-det evenly over the frames."""
+
+    def inverse_and_frame_log_det(
+        self, y: Array, *, context: Array | None = None
+    ) -> tuple[Array, Array]:
+        """Data -> latent with the log-det per frame: (x, log|det| (..., T)), whose sum over
+        T is :meth:`inverse_and_log_det`'s. Defined for frame-wise bijectors only: those with
+        ``frame_constant_log_det`` get log_det / T on every frame; couplings and the
+        combinators override it; the rest raise."""
+        if not self.frame_constant_log_det:
+            raise NotImplementedError(
+                f"{type(self).__name__} has no per-frame log-det (it is not a frame-wise "
+                "map); score whole sequences with inverse_and_log_det"
+            )
+        x, ld = self.inverse_and_log_det(y, context=context)
+        return x, jnp.broadcast_to((ld / y.shape[-2])[..., None], y.shape[:-1])
+
     def forward(self, x: Array, *, context: Array | None = None) -> Array:
         """Latent -> data."""
         return self.forward_and_log_det(x, context=context)[0]
@@ -308,6 +334,13 @@ class Chain(Bijector):
             total = ld if total is None else total + ld
         return y, total
 
+    def inverse_and_frame_log_det(self, y, *, context=None):
+        total = None
+        for b in reversed(self.bijectors):
+            y, ld = b.inverse_and_frame_log_det(y, context=context)
+            total = ld if total is None else total + ld
+        return y, total
+
     def initial_carry(self, batch_shape=()):
         """One carry per bijector, a tuple in list order."""
         return tuple(b.initial_carry(batch_shape) for b in self.bijectors)
@@ -379,6 +412,9 @@ class MapContext(Bijector):
     def inverse_and_log_det(self, y, *, context=None):
         return self.bijector.inverse_and_log_det(y, context=self._mapped(context))
 
+    def inverse_and_frame_log_det(self, y, *, context=None):
+        return self.bijector.inverse_and_frame_log_det(y, context=self._mapped(context))
+
     def initial_carry(self, batch_shape=()):
         return self.bijector.initial_carry(batch_shape)
 
@@ -410,6 +446,12 @@ def _forward_body(carry, step):
 def _inverse_body(carry, step):
     h, total, context = carry
     h, ld = step.inverse_and_log_det(h, context=context)
+    return (h, total + ld, context), None
+
+
+def _inverse_frame_body(carry, step):
+    h, total, context = carry
+    h, ld = step.inverse_and_frame_log_det(h, context=context)
     return (h, total + ld, context), None
 
 
@@ -555,6 +597,14 @@ class Scan(Bijector):
 
         (y, total, _), _ = jax.lax.scan(
             _inverse_body, (y, _zeros_batch(y), context), self.steps, reverse=True
+        )
+        return y, total
+
+    def inverse_and_frame_log_det(self, y, *, context=None):
+        y = _at_least_float32(y)
+        total = jnp.zeros(y.shape[:-1], jnp.result_type(y.dtype, jnp.float32))
+        (y, total, _), _ = jax.lax.scan(
+            _inverse_frame_body, (y, total, context), self.steps, reverse=True
         )
         return y, total
 

@@ -188,6 +188,11 @@ class AffineCoupling(_Coupling):
         z_b, ld = affine_to_latent(x_b, shift, scale)
         return merge_halves(x_a, z_b), jnp.sum(ld, axis=-1)
 
+    def inverse_and_frame_log_det(self, y, *, context=None):
+        x_a, x_b, h = self._condition(y, context)
+        z_b, ld = affine_to_latent(x_b, *affine_params(h, self.eps))
+        return merge_halves(x_a, z_b), ld
+
     def forward_and_log_det(self, x, *, context=None):
         z_a, z_b, h = self._condition(x, context)
         shift, scale = affine_params(h, self.eps)
@@ -213,6 +218,7 @@ class AdditiveCoupling(_Coupling):
 
     _name = "AdditiveCoupling"
     _outputs_per_channel = 1
+    frame_constant_log_det = True
 
     def _zero(self, x: Array) -> Array:
         return jnp.zeros(x.shape[:-2], jnp.result_type(x.dtype, jnp.float32))

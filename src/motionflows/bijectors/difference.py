@@ -36,6 +36,8 @@ class Difference(Bijector):
     constant 1 / (1 - a) frames instead of staying in every later frame.
     """
 
+    frame_constant_log_det = True  # the same log-det on every frame
+
     def __init__(
         self,
         num_channels: int,

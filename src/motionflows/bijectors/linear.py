@@ -50,6 +50,8 @@ class InvertibleLinear(Bijector):
     (an ``nnx.Rngs``; a raw ``key=`` works too).
     """
 
+    frame_constant_log_det = True  # the same log-det on every frame
+
     def __init__(
         self, num_channels: int, *, rngs: nnx.Rngs | Array | None = None, key: Array | None = None
     ):
@@ -138,6 +140,8 @@ class DenseLinear(Bijector):
     nothing keeps W invertible during training.
     """
 
+    frame_constant_log_det = True  # the same log-det on every frame
+
     def __init__(
         self, num_channels: int, *, rngs: nnx.Rngs | Array | None = None, key: Array | None = None
     ):
@@ -168,6 +172,8 @@ class Permute(Bijector):
     data -> latent (``inverse``): z[..., i] = x[..., perm[i]];  ``forward`` undoes it.
     ``perm`` is kept as a static tuple (part of the module's structure, not an array).
     """
+
+    frame_constant_log_det = True  # the same log-det on every frame
 
     def __init__(self, perm: Sequence[int]):
         perm = tuple(int(i) for i in np.asarray(perm).reshape(-1))

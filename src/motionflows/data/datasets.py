@@ -260,7 +260,8 @@ class MotionDataset:
         shuffle: bool = True,
         drop_last: bool | None = None,
     ) -> dict[str, np.ndarray]:
-        """Batch number ``index`` of a seeded stream: {"pose": (B, T, 63), "control"}.
+        """Batch number ``index`` of a seeded stream: {"pose": (B, T, 63), "control"
+        (B, T, 3), "valid" (B, T) bool, False on a padded take's frozen tail}.
 
         Deterministic in (seed, index): epoch = index // batches_per_epoch and the order is
         a permutation drawn from (seed, epoch, split). ``drop_last`` defaults to True for
@@ -277,7 +278,11 @@ class MotionDataset:
             drop_last=drop,
             salt=SPLITS.index(split),
         )
-        return {"pose": data["pose"][idx], "control": data["control"][idx]}
+        return {
+            "pose": data["pose"][idx],
+            "control": data["control"][idx],
+            "valid": data["valid"][idx],
+        }
 
     def batches(
         self,

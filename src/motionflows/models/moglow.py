@@ -319,6 +319,12 @@ class MoGlow(nnx.Module):
         planted foot stays where it was drawn; the model learns to carry on from its own
         past, not to correct it). The shift is a function of the history, so either is an
         exact density of its targets.
+      mask_padded: train on the real frames of padded windows only (our option; False =
+        every frame). A take shorter than the window is padded with its last pose frozen
+        and zero control; the training loss (``experiments/moglow.py``'s ``loss``) then
+        scores only the frames the batch's ``valid`` marks, from :meth:`log_prob` with
+        ``per_frame=True``. Exact, since the model is causal: a real frame's density never
+        reads the padding after it.
       rngs: ``nnx.Rngs`` (or a key) for the initial parameters.
     """
 
@@ -349,6 +355,7 @@ class MoGlow(nnx.Module):
         own_history_passes: int = 1,
         own_history_temperature: float = 0.8,
         own_history_target: str = "pose",
+        mask_padded: bool = False,
         rngs: nnx.Rngs | Array,
         num_steps: int | None = None,
     ):
@@ -438,6 +445,7 @@ class MoGlow(nnx.Module):
         self.own_history_passes = int(own_history_passes)
         self.own_history_temperature = float(own_history_temperature)
         self.own_history_target = own_history_target
+        self.mask_padded = bool(mask_padded)
         if self.residual_world or self.stance_hint:  # [pose mean, pose std, ctrl mean, std]
             self.units = Fixed(
                 jnp.concatenate(
@@ -594,11 +602,13 @@ class MoGlow(nnx.Module):
         key: Array | None = None,
         history_noise: float = 0.0,
         own_history: float = 0.0,
+        per_frame: bool = False,
     ) -> tuple[Array, Array]:
         """Data -> latent for the target frames of windows.
 
         pose (B, T, D), context = control (B, T, C) -> (z (B, T', D), log|det dz/dx| (B,)),
-        T' = T - tau ("official") or T ("window"). ``dropout``, ``own_history`` and
+        T' = T - tau ("official") or T ("window"); with ``per_frame`` the log-det of each
+        target frame (B, T'), summing to the former. ``dropout``, ``own_history`` and
         ``history_noise`` (the training-time corruptions of the history, in that order of
         effect: own draws, then noise, then dropout; see the class docstring) need ``key``.
         Used by ``initialize_from_data``.
@@ -636,7 +646,10 @@ class MoGlow(nnx.Module):
         if self.residual:  # the changes x_t - x~_{t-1} of the target frames (log-det 0),
             # by the sampler's own Difference frame step, every target frame at once
             targets = self._difference().inverse_step(targets, context_t=cond, carry=previous)[0]
-        return self._steps().inverse_and_log_det(targets, context=cond)
+        steps = self._steps()
+        if per_frame:
+            return steps.inverse_and_frame_log_det(targets, context=cond)
+        return steps.inverse_and_log_det(targets, context=cond)
 
     def _own_history(self, pose: Array, control: Array, scope: str, key: Array, rate: float):
         """The histories of parallel scheduled sampling (``own_history``): pose (B, T, D)
@@ -670,8 +683,10 @@ class MoGlow(nnx.Module):
         scope: str = "official",
         key: Array | None = None,
         dropout: float | None = None,
+        per_frame: bool = False,
     ) -> Array:
-        """Log-likelihood per window (B,) in nats (standardised space).
+        """Log-likelihood per window (B,) in nats (standardised space); with ``per_frame``
+        that of each target frame (B, T'), log p(x_t | x_<t, c), summing to the former.
 
         ``scope="official"``: frames tau..T-1 given the first tau; ``"window"``: all T frames
         with a zero history. With ``key`` the training-time history dropout (probability
@@ -693,8 +708,10 @@ class MoGlow(nnx.Module):
             key=key,
             history_noise=0.0 if key is None else self.history_noise,
             own_history=0.0 if key is None else self.own_history,
+            per_frame=per_frame,
         )
-        return jnp.sum(self.base_log_prob(z), axis=-1) + log_det
+        frames = self.base_log_prob(z)  # (B, T')
+        return frames + log_det if per_frame else jnp.sum(frames, axis=-1) + log_det
 
     def num_targets(self, num_frames: int, scope: str = "official") -> int:
         """Scored frames per window of ``num_frames`` frames."""
