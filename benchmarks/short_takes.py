@@ -37,13 +37,11 @@ import json
 import os
 import platform
 import sys
-from collections import Counter
 from pathlib import Path
-
-import numpy as np
 
 from motionflows import bench, runs
 from motionflows.bench.benchmark import jsonable
+from motionflows.bench.short_takes import drawing, score_short_takes, short_windows, take_kinds
 from motionflows.errors import RunError
 from motionflows.run import restore_run
 from motionflows.windows import complete_windows, subset
@@ -60,35 +58,6 @@ COLUMNS = (
 )
 
 
-def short_windows(windows, frames: int) -> np.ndarray:
-    """(M,) indices of the padded windows of ``windows`` with at least ``frames`` recorded
-    frames (a take shorter than the window, one window each)."""
-    valid = np.asarray(windows.valid, bool).reshape(len(windows), -1)
-    recorded = valid.sum(axis=1)
-    return np.flatnonzero(~valid.all(axis=1) & (recorded >= frames))
-
-
-def held_control(windows, idx: np.ndarray) -> np.ndarray:
-    """(M, T, 3) controls of windows ``idx`` (data units) with every padded frame holding
-    the window's last recorded control."""
-    control = np.array(np.asarray(windows.control)[idx], np.float32)
-    valid = np.asarray(windows.valid, bool).reshape(len(windows), -1)[idx]
-    last = valid.sum(axis=1) - 1  # recorded frames come first in a padded window
-    for i, n in enumerate(last):
-        control[i, n + 1 :] = control[i, n]
-    return control
-
-
-def take_kinds(windows, idx: np.ndarray) -> dict[str, int]:
-    """How many windows of each motion the take names of ``idx`` say (Bandai's
-    ``dataset-2_run_normal_012`` -> ``run``); ``{}`` for unnamed takes."""
-    kinds = Counter()
-    for name in np.asarray(windows.take, dtype=object)[idx]:
-        parts = Path(str(name)).stem.split("_")
-        kinds[parts[1] if len(parts) > 2 else str(name)] += 1
-    return dict(sorted(kinds.items()))
-
-
 def score_run(
     run: str, temperatures, *, frames: int, limit: int, seed: int, skip: int = 0
 ) -> list[dict]:
@@ -102,12 +71,11 @@ def score_run(
     part, fps = dataset.split("test"), float(config.data.fps)
     if part.window < frames:
         raise RunError(f"--frames {frames} is longer than the run's {part.window}-frame window")
-    span = slice(skip, frames)
     picked = {
         "short_takes": short_windows(part, frames),
         "complete_windows": complete_windows(part),
     }
-    key = jax.random.key(seed)
+    key, st = jax.random.key(seed), dataset.standardizer
     samplers = [bench.make_sampler(exp, temp) for temp in temperatures]  # compiled once each
     out = []
     for r, name in enumerate(ROWS):
@@ -117,21 +85,13 @@ def score_run(
             print(f"{run}: no {name.replace('_', ' ')} of {frames}+ frames in its test split",
                   file=sys.stderr)  # fmt: skip
             continue
-        truth_m = np.asarray(part.pose, np.float32)[idx][:, span]
-        control_m = held_control(part, idx)
         head = {"run": run, "row": name, "windows": len(idx), "kinds": take_kinds(part, idx),
                 "step": int(saved["meta"]["step"]), "frames": [skip, frames]}  # fmt: skip
-        gt = bench.motion_metrics(truth_m, control_m[:, span], truth_m, None, fps)
-        gt.pop("prediction", None)
+        gt = score_short_takes(part, idx, (skip, frames), fps)
         out.append({**head, "temperature": None, **gt})
-        control = np.asarray(dataset.standardizer.normalize_control(control_m), np.float32)
         for t, (temp, sampler) in enumerate(zip(temperatures, samplers, strict=True)):
-            draws = bench.sample_in_chunks(
-                sampler, model, control, jax.random.fold_in(key, 10 * r + t)
-            )
-            draws_m = np.asarray(dataset.standardizer.denormalize_pose(draws), np.float32)
-            metrics = bench.motion_metrics(draws_m[:, span], control_m[:, span], truth_m, None, fps)
-            metrics.pop("prediction", None)
+            sample = drawing(sampler, model, st, jax.random.fold_in(key, 10 * r + t))
+            metrics = score_short_takes(part, idx, (skip, frames), fps, sample=sample)
             out.append({**head, "temperature": temp, **metrics})
     return out
 

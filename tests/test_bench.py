@@ -662,6 +662,46 @@ def test_test_data_sharing_training_takes_is_flagged(monkeypatch):
     assert any("Not held out" in line for line in lines)
 
 
+def test_short_test_takes_get_their_own_motion_table(smoke, tmp_path, monkeypatch):
+    """Test takes shorter than a window (padded) are left out of the likelihood and the
+    motion of complete windows, and every model samples them for a table of their own,
+    beside their recorded frames; the report's data note points to it."""
+    from motionflows.bench import benchmark, report
+    from motionflows.data.pipeline import make_windows
+    from motionflows.data.synthetic import straight_walk
+
+    clips = [dataclasses.replace(straight_walk(1.2, seconds=4.0), name="d_walk_x_001")]
+    clips += [dataclasses.replace(straight_walk(2.4, seconds=s, seed=i), name=f"d_run_x_00{i}")
+              for i, s in enumerate((1.2, 1.4, 0.5))]  # fmt: skip
+    windows, _ = make_windows(clips, 32, 8, short="pad", min_frames=8)
+    real = benchmark._test_data
+
+    def short_test(dataset, data_cfg, test_data, progress):
+        return dataset.with_test(windows), real(dataset, data_cfg, None, progress)[1]
+
+    monkeypatch.setattr(benchmark, "_test_data", short_test)
+    results = _bench_again(smoke, tmp_path / "out", ",".join(MODELS))
+    # 3 short takes, 2 with the 16 frames sampled from a smoke take's start (0.5 s: 10)
+    assert results["short_takes"] == {"windows": 2, "frames": [4, 16], "kinds": {"run": 2}}
+    truth = results["ground_truth"]["motion_short_takes"]
+    assert truth["fd_pose"] < 1e-6 and truth["jerk"] > 0
+    for name in MODELS:
+        motion = results["models"][name]["motion_short_takes"]
+        assert set(short_takes_metrics()) <= set(motion) and motion["fd_pose"] > 0, name
+    text = (tmp_path / "out" / "BENCHMARK.md").read_text()
+    assert "### Motion on the short takes" in text and "(run 2)" in text
+    assert "3 test takes are shorter than one window" in text
+    assert "*Motion on the short takes* scores the first frames of 2" in text
+    table = report.short_takes_table(results, MODELS)
+    assert len(table.splitlines()) == 3 + len(MODELS)
+
+
+def short_takes_metrics():
+    from motionflows.bench.short_takes import SHORT_METRICS
+
+    return SHORT_METRICS
+
+
 def test_report_says_how_many_test_takes_no_frame_of_is_scored():
     """A test take shorter than one window gives one padded window, which the bench does not
     score: the report counts them and names the script that does; no note without them."""

@@ -49,6 +49,13 @@ from motionflows.bench.scoring import (
     per_frame_nll,
     score_likelihood,
 )
+from motionflows.bench.short_takes import (
+    drawing,
+    pick_short,
+    score_short_takes,
+    short_take_spans,
+    take_kinds,
+)
 from motionflows.bench.speed import (
     count_params,
     describe_machine,
@@ -209,10 +216,13 @@ def bench_model(
     overrides: Sequence[str] = (),
     training_bars: bool = True,
     foot_lock: bool = False,
+    short: dict | None = None,
 ) -> dict:
     """Everything the report holds about one model; ``entry["_samples"]`` (metres, not saved
     to JSON) keeps the motion samples for the GIFs. ``foot_lock`` also scores the same
-    samples after the foot-lock post-process (``entry["motion_foot_lock"]``)."""
+    samples after the foot-lock post-process (``entry["motion_foot_lock"]``). ``short``
+    ({"idx", "span"}: the test takes shorter than a window) adds the motion on them
+    (``entry["motion_short_takes"]``)."""
     import jax
 
     entry: dict[str, Any] = {}
@@ -270,6 +280,14 @@ def bench_model(
                 foot_locked(samples_m, control_m), control_m, gt_m,
                 foot_locked(div_m, div_control), float(data.fps),
             )  # fmt: skip
+    if short is not None:
+        with _Section(entry, "short_takes_error", strict, progress):
+            log(progress, f"{name}: samples for {len(short['idx'])} short test takes")
+            test, st = loaded.dataset.test, loaded.dataset.standardizer
+            sample = drawing(sampler, loaded.model, st, jax.random.fold_in(key, 30))
+            entry["motion_short_takes"] = score_short_takes(
+                test, short["idx"], short["span"], float(data.fps), sample=sample
+            )
     return entry
 
 
@@ -507,6 +525,7 @@ def run_benchmark(
         gt["diversity"] = natural_diversity_of(dataset.test)
         results["ground_truth"] = {"motion": gt}
     results.setdefault("ground_truth", {"motion": None})
+    short = _short_takes(results, dataset, sizes, float(data_cfg.fps), strict, progress)
     with _Section(results, "references_error", strict, progress):
         results["references"] = data_references(dataset.train, gt_m, control_m, float(data_cfg.fps))
     results.update(motion_metrics=dict(MOTION_METRICS), motion_note=report.MOTION_NOTE)
@@ -520,7 +539,7 @@ def run_benchmark(
         t0 = time.perf_counter()
         entry = bench_model(
             name, data=data_cfg, budget=budget, sizes=sizes, runs_dir=runs_dir,
-            progress=progress, motion_idx=motion_idx, dataset=dataset, **options,
+            progress=progress, motion_idx=motion_idx, dataset=dataset, short=short, **options,
         )  # fmt: skip
         if "_samples" in entry:
             samples[name] = entry.pop("_samples")
@@ -534,6 +553,26 @@ def run_benchmark(
         )
     return _write(results, samples, out, gt_m, control_m, fps=float(data_cfg.fps), sizes=sizes,
                   gifs=gifs, strict=strict, progress=progress, wall0=wall0)  # fmt: skip
+
+
+def _short_takes(results: dict, dataset, sizes: dict, fps: float, strict, progress):
+    """The short test takes the models also sample ({"idx", "span"}), or None when there are
+    none; ``results["short_takes"]`` describes them and the ground truth's motion on them is
+    ``results["ground_truth"]["motion_short_takes"]``."""
+    span = short_take_spans(int(np.asarray(dataset.test.pose).shape[1]), sizes)
+    idx = pick_short(dataset.test, span[1], sizes["motion_windows"]) if span else []
+    if len(idx) == 0:
+        return None
+    results["short_takes"] = {
+        "windows": len(idx),
+        "frames": list(span),
+        "kinds": take_kinds(dataset.test, idx),
+    }
+    with _Section(results, "short_takes_error", strict, progress):
+        results["ground_truth"]["motion_short_takes"] = score_short_takes(
+            dataset.test, idx, span, fps
+        )
+    return {"idx": idx, "span": span}
 
 
 def _write(results, samples, out: Path, gt_m, control_m, *, wall0, progress, **figure_args):

@@ -44,9 +44,11 @@ BUDGET_NOTES = {
 BUDGET_SIZES: dict[str, dict[str, int]] = {
     # windows scored for likelihood (test, and a train subset), windows sampled for motion
     # quality, samples drawn for diversity, frames per GIF, bootstrap resamples,
-    # prefix lengths for per-frame NLL of causal models
+    # prefix lengths for per-frame NLL of causal models; frames sampled from each test take
+    # shorter than a window (short_frames, default bench.short_takes.SHORT_FRAMES)
     "smoke": dict(eval_windows=32, train_windows=32, motion_windows=8, diversity=8,
-                  gif_frames=12, bootstrap=200, speed_repeats=1, prefix_points=2),
+                  gif_frames=12, bootstrap=200, speed_repeats=1, prefix_points=2,
+                  short_frames=16),
     "quick": dict(eval_windows=512, train_windows=256, motion_windows=64, diversity=16,
                   gif_frames=80, bootstrap=1000, speed_repeats=3, prefix_points=10),
     "cpu": dict(eval_windows=100000, train_windows=512, motion_windows=256, diversity=32,

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from motionflows.bench.scoring import DIVERGED_METRES, REFERENCE_WINDOWS
+from motionflows.bench.short_takes import SHORT_METRICS
 
 MOTION_NOTE = (
     "Foot sliding: mean horizontal world speed of a foot (mean of ankle and toe) while its "
@@ -326,16 +327,23 @@ def _own_training_data(results: dict) -> str:
     return text
 
 
-def _short_takes_note(info: dict) -> str:
-    """The test takes no frame of which is scored (each shorter than one window, so its one
-    window is padded), and where they are scored; "" when there are none."""
+def _short_takes_note(info: dict, scored: dict | None = None) -> str:
+    """The test takes no frame of which the likelihood and motion tables score (each
+    shorter than one window, so its one window is padded), and where they are scored
+    (``scored``: ``results["short_takes"]``); "" when there are none."""
     short = int(info.get("windows_test", 0)) - int(info.get("complete_windows_test", 0))
     if short <= 0:
         return ""
+    where = (
+        f"the table *Motion on the short takes* scores the first frames of {scored['windows']} "
+        "of them"
+        if scored
+        else "`python benchmarks/short_takes.py RUN` scores their first frames"
+    )
     return (
-        f" **{short} test takes are shorter than one window, so none of their frames is "
-        "scored here** (on Bandai mostly runs, which last 2-4 s): `python "
-        "benchmarks/short_takes.py RUN` scores their first frames with the same motion metrics."
+        f" **{short} test takes are shorter than one window, so the likelihood and the motion "
+        "of the complete windows leave out all their frames** (on Bandai mostly runs, which "
+        f"last 2-4 s): {where} with the same motion metrics."
     )
 
 
@@ -353,7 +361,7 @@ def _data_section(results: dict) -> list[str]:
         f"windows scored: test {info.get('complete_windows_test', '?')}. Every model is "
         "trained on these takes and scored on the same test windows and controls; windows "
         "padded past the end of a short take are not scored."
-        + _short_takes_note(info)
+        + _short_takes_note(info, results.get("short_takes"))
         + _own_training_data(results)
         + "\n",
     ]
@@ -432,6 +440,49 @@ def _motion_section(results: dict, order: list[str]) -> list[str]:
         + (" " + REFERENCE_NOTE if results.get("references") else "")
         + "\n",
         motion_table(results, order) + "\n",
+        *_short_takes_section(results, order),
+    ]
+
+
+def short_takes_table(results: dict, order: list[str]) -> str:
+    """Rows: the recorded short takes, then each model's samples for them; columns: the
+    motion metrics of :data:`~motionflows.bench.short_takes.SHORT_METRICS`."""
+    meta = results.get("motion_metrics", {})
+    keys = [k for k in SHORT_METRICS if k in meta]
+    header = ["model"] + [f"{meta[k]['label']} ({meta[k]['unit']})" for k in keys]
+    gt = results.get("ground_truth", {}).get("motion_short_takes") or {}
+    rows = [["*ground truth (short test takes)*"] + [_fmt(gt.get(k), 3) for k in keys]]
+    for name in order:
+        entry = results["models"].get(name, {})
+        motion = entry.get("motion_short_takes")
+        if not motion:
+            why = entry.get("short_takes_error") or entry.get("motion_error")
+            why = why or entry.get("error") or "not run"
+            pad = [""] * max(len(keys) - 1, 0)
+            rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
+            continue
+        rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
+    return _table(header, rows)
+
+
+def _short_takes_section(results: dict, order: list[str]) -> list[str]:
+    """The motion on the test takes shorter than a window, when there are any."""
+    short = results.get("short_takes")
+    if not short:
+        return []
+    skip, frames = short["frames"]
+    kinds = ", ".join(f"{kind} {n}" for kind, n in short.get("kinds", {}).items())
+    return [
+        "### Motion on the short takes\n",
+        f"Samples drawn at temperature {results['temperature']:g} for the controls of "
+        f"{short['windows']} test takes shorter than one window ({kinds}), scored on their "
+        f"frames {skip}..{frames - 1} (the first {skip}, the start from a mean-pose history "
+        "while a recorded run starts at full speed, left out): each take's own control, held "
+        "at its last value over the padded frames (a run going on, not the stop the padding "
+        "stores). The first row scores the recorded frames; the Frechet distances are "
+        "against them. Diversity and the errors at the report times are not scored "
+        "(`motionflows.bench.short_takes`).\n",
+        short_takes_table(results, order) + "\n",
     ]
 
 
