@@ -15,7 +15,7 @@ such takes with the same motion metrics on frames ``skip .. frames - 1`` of each
 * ``skip``: the models start from a mean-pose history (the bench's rule) while a Bandai
   run starts at full speed, so the first half second, the start-up, is left out.
 
-Diversity is not scored (one take per control). ``motion_metrics`` is
+Diversity is not scored (one take per control). The metrics are
 :func:`motionflows.bench.scoring.motion_metrics`; the ground truth of the same frames is
 the reference of the Frechet distances and its own row.
 """
@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from motionflows.bench.scoring import motion_metrics
+from motionflows.bench.speed import sample_in_chunks
 from motionflows.windows import subset
 
 SHORT_FRAMES = 40
@@ -88,8 +90,9 @@ def take_kinds(windows: Any, idx: np.ndarray) -> dict[str, int]:
 
 def short_take_spans(window: int, sizes: dict) -> tuple[int, int] | None:
     """(skip, frames) of the bench's short-take rows for windows of ``window`` frames:
-    :data:`SHORT_SKIP`, :data:`SHORT_FRAMES` scaled by the budget's ``short_frames`` share
-    (the smoke budget's shorter windows); None when a window is too short for them."""
+    frames = the budget's ``short_frames`` (default :data:`SHORT_FRAMES`; the smoke budget's
+    windows are shorter) but at most ``window - 1``, skip = :data:`SHORT_SKIP` scaled by
+    frames / SHORT_FRAMES; None when that leaves fewer than 4 frames scored."""
     frames = min(int(sizes.get("short_frames", SHORT_FRAMES)), window - 1)
     skip = SHORT_SKIP * frames // SHORT_FRAMES
     return (skip, frames) if frames - skip >= 4 else None
@@ -111,8 +114,6 @@ def score_short_takes(
     standardiser's maps. Returns :func:`~motionflows.bench.scoring.motion_metrics`'s
     scalars (no ``prediction``).
     """
-    from motionflows.bench.scoring import motion_metrics
-
     frames = slice(*span)
     truth_m = np.asarray(windows.pose, np.float32)[idx][:, frames]
     control_m = held_control(windows, idx)
@@ -126,7 +127,6 @@ def drawing(sampler, model, standardizer, key):
     """``sample`` for :func:`score_short_takes`: control (M, T, 3) in data units -> the
     model's draws (M, T, 63) in metres, by ``sampler`` (:func:`motionflows.bench.make_sampler`)
     in chunks with ``key``, between the standardiser's maps."""
-    from motionflows.bench.speed import sample_in_chunks
 
     def sample(control_m):
         control = np.asarray(standardizer.normalize_control(control_m), np.float32)
