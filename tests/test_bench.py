@@ -680,7 +680,7 @@ def test_short_test_takes_get_their_own_motion_table(smoke, tmp_path, monkeypatc
         return dataset.with_test(windows), real(dataset, data_cfg, None, progress)[1]
 
     monkeypatch.setattr(benchmark, "_test_data", short_test)
-    results = _bench_again(smoke, tmp_path / "out", ",".join(MODELS))
+    results = _bench_again(smoke, tmp_path / "out", ",".join(MODELS), foot_lock=True)
     # 3 short takes, 2 with the 16 frames sampled from a smoke take's start (0.5 s: 10)
     assert results["short_takes"] == {"windows": 2, "frames": [4, 16], "kinds": {"run": 2}}
     truth = results["ground_truth"]["motion_short_takes"]
@@ -693,7 +693,11 @@ def test_short_test_takes_get_their_own_motion_table(smoke, tmp_path, monkeypatc
     assert "3 test takes are shorter than one window" in text
     assert "*Motion on the short takes* scores the first frames of 2" in text
     table = report.short_takes_table(results, MODELS)
-    assert len(table.splitlines()) == 3 + len(MODELS)
+    assert len(table.splitlines()) == 3 + 2 * len(MODELS)  # each model + its foot-locked draws
+    drawn = results["models"]["linear_ar"]["motion_short_takes"]
+    locked = results["models"]["linear_ar"]["motion_short_takes_foot_lock"]
+    assert locked["foot_sliding"] < 0.5 * drawn["foot_sliding"]
+    assert "| linear_ar + foot lock |" in text and "the same samples after the foot lock" in text
 
 
 def short_takes_metrics():

@@ -8,6 +8,7 @@ aborting the report, unless ``strict``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -51,6 +52,7 @@ from motionflows.bench.scoring import (
 )
 from motionflows.bench.short_takes import (
     drawing,
+    held_control,
     pick_short,
     score_short_takes,
     short_take_spans,
@@ -222,7 +224,8 @@ def bench_model(
     to JSON) keeps the motion samples for the GIFs. ``foot_lock`` also scores the same
     samples after the foot-lock post-process (``entry["motion_foot_lock"]``). ``short``
     ({"idx", "span"}: the test takes shorter than a window) adds the motion on them
-    (``entry["motion_short_takes"]``)."""
+    (``entry["motion_short_takes"]``, with ``foot_lock`` also
+    ``entry["motion_short_takes_foot_lock"]``)."""
     import jax
 
     entry: dict[str, Any] = {}
@@ -285,9 +288,15 @@ def bench_model(
             log(progress, f"{name}: samples for {len(short['idx'])} short test takes")
             test, st = loaded.dataset.test, loaded.dataset.standardizer
             sample = drawing(sampler, loaded.model, st, jax.random.fold_in(key, 30))
-            entry["motion_short_takes"] = score_short_takes(
-                test, short["idx"], short["span"], float(data.fps), sample=sample
+            drawn_m = np.asarray(sample(held_control(test, short["idx"])), np.float32)
+            score = functools.partial(
+                score_short_takes, test, short["idx"], short["span"], float(data.fps)
             )
+            entry["motion_short_takes"] = score(sample=lambda control_m: drawn_m)
+            if foot_lock:  # the same draws after the foot lock
+                entry["motion_short_takes_foot_lock"] = score(
+                    sample=lambda control_m: foot_locked(drawn_m, control_m)
+                )
     return entry
 
 

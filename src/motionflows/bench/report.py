@@ -462,6 +462,8 @@ def short_takes_table(results: dict, order: list[str]) -> str:
             rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
             continue
         rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
+        if locked := entry.get("motion_short_takes_foot_lock"):
+            rows.append([f"{name} + foot lock"] + [_fmt(locked.get(k), 3) for k in keys])
     return _table(header, rows)
 
 
@@ -471,6 +473,7 @@ def _short_takes_section(results: dict, order: list[str]) -> list[str]:
     if not short:
         return []
     skip, frames = short["frames"]
+    locked = any(e.get("motion_short_takes_foot_lock") for e in results["models"].values())
     kinds = ", ".join(f"{kind} {n}" for kind, n in short.get("kinds", {}).items())
     return [
         "### Motion on the short takes\n",
@@ -481,7 +484,9 @@ def _short_takes_section(results: dict, order: list[str]) -> list[str]:
         "at its last value over the padded frames (a run going on, not the stop the padding "
         "stores). The first row scores the recorded frames; the Frechet distances are "
         "against them. Diversity and the errors at the report times are not scored "
-        "(`motionflows.bench.short_takes`).\n",
+        "(`motionflows.bench.short_takes`)."
+        + (" Rows '+ foot lock': the same samples after the foot lock." if locked else "")
+        + "\n",
         short_takes_table(results, order) + "\n",
     ]
 
