@@ -284,7 +284,7 @@ def bench_model(
                 foot_locked(div_m, div_control), float(data.fps),
             )  # fmt: skip
     if short is not None:
-        with _Section(entry, "short_takes_error", strict, progress):
+        with _Section(entry, "motion_short_takes_error", strict, progress):
             log(progress, f"{name}: samples for {len(short['idx'])} short test takes")
             test, st = loaded.dataset.test, loaded.dataset.standardizer
             sample = drawing(sampler, loaded.model, st, jax.random.fold_in(key, 30))

@@ -164,18 +164,27 @@ def motion_table(results: dict, order: list[str]) -> str:
     for ref, label in REFERENCE_ROWS.items():
         if row := refs.get(ref):
             rows.append([f"*{label}*"] + [_fmt(row.get(k), 3) for k in keys])
+    return _table(header, rows + _model_rows(results, order, keys, "motion"))
+
+
+def _model_rows(results: dict, order: list[str], keys: list[str], field: str) -> list[list[str]]:
+    """Each model's row of ``entry[field]`` (with its ``field + "_foot_lock"`` row under
+    it when scored), or why it is missing (``field + "_error"``, the model's motion or
+    training error)."""
+    rows = []
     for name in order:
         entry = results["models"].get(name, {})
-        motion = entry.get("motion")
+        motion = entry.get(field)
         if not motion:
-            why = entry.get("motion_error") or entry.get("error") or "not run"
+            why = entry.get(f"{field}_error") or entry.get("motion_error")
+            why = why or entry.get("error") or "not run"
             pad = [""] * max(len(keys) - 1, 0)
             rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
             continue
         rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
-        if locked := entry.get("motion_foot_lock"):
+        if locked := entry.get(f"{field}_foot_lock"):
             rows.append([f"{name} + foot lock"] + [_fmt(locked.get(k), 3) for k in keys])
-    return _table(header, rows)
+    return rows
 
 
 def speed_table(results: dict, order: list[str]) -> str:
@@ -452,19 +461,7 @@ def short_takes_table(results: dict, order: list[str]) -> str:
     header = ["model"] + [f"{meta[k]['label']} ({meta[k]['unit']})" for k in keys]
     gt = results.get("ground_truth", {}).get("motion_short_takes") or {}
     rows = [["*ground truth (short test takes)*"] + [_fmt(gt.get(k), 3) for k in keys]]
-    for name in order:
-        entry = results["models"].get(name, {})
-        motion = entry.get("motion_short_takes")
-        if not motion:
-            why = entry.get("short_takes_error") or entry.get("motion_error")
-            why = why or entry.get("error") or "not run"
-            pad = [""] * max(len(keys) - 1, 0)
-            rows.append([f"**{name}**", "n/a: " + why.splitlines()[0][:80]] + pad)
-            continue
-        rows.append([f"**{name}**"] + [_fmt(motion.get(k), 3) for k in keys])
-        if locked := entry.get("motion_short_takes_foot_lock"):
-            rows.append([f"{name} + foot lock"] + [_fmt(locked.get(k), 3) for k in keys])
-    return _table(header, rows)
+    return _table(header, rows + _model_rows(results, order, keys, "motion_short_takes"))
 
 
 def _short_takes_section(results: dict, order: list[str]) -> list[str]:
